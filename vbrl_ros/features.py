@@ -1,0 +1,156 @@
+"""The five VBRL feature modalities of every voxel, and the descriptor layout.
+
+A scan's descriptor is one vector of length d. Its rows are grouped
+modality-major: all voxels' covariance features, then all voxels' XY-HOG,
+XZ-HOG, YZ-HOG and finally subvoxel occupancy; inside a modality, voxel-major.
+:class:`FeatureLayout` says which voxel and modality each row belongs to —
+the groups of the structured-sparsity norms and of the score.
+
+Everything is computed with a handful of ``np.bincount`` calls over the
+points, so the cost is linear in the number of points with no Python loop
+over voxels (the hot path of the online node).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from vbrl_ros.config import VBRLConfig
+from vbrl_ros.hog import hog_batch
+from vbrl_ros.voxelization import CartesianVoxelGrid
+
+MODALITIES: tuple[str, ...] = ("covariance", "hog_xy", "hog_xz", "hog_yz", "occupancy")
+COVARIANCE_ENTRIES = 6  # xx, yy, zz, xy, xz, yz
+OCCUPANCY_BITS = 8  # one per octant
+
+
+@dataclass(frozen=True)
+class FeatureLayout:
+    """Which voxel and which modality each descriptor row belongs to."""
+
+    n_voxels: int
+    features_per_modality: tuple[int, ...]  # per-voxel feature count of each modality
+
+    @property
+    def n_modalities(self) -> int:
+        return len(self.features_per_modality)
+
+    @property
+    def dimension(self) -> int:
+        return self.n_voxels * sum(self.features_per_modality)
+
+    @cached_property
+    def voxel_of_row(self) -> np.ndarray:
+        return np.concatenate(
+            [np.repeat(np.arange(self.n_voxels), k) for k in self.features_per_modality]
+        )
+
+    @cached_property
+    def modality_of_row(self) -> np.ndarray:
+        return np.repeat(
+            np.arange(self.n_modalities),
+            [self.n_voxels * k for k in self.features_per_modality],
+        )
+
+    def modality_slice(self, modality: int) -> slice:
+        start = self.n_voxels * sum(self.features_per_modality[:modality])
+        return slice(start, start + self.n_voxels * self.features_per_modality[modality])
+
+
+class Featurizer:
+    """Turns one scan (points in the sensor frame) into a VBRL descriptor."""
+
+    def __init__(self, config: VBRLConfig | None = None) -> None:
+        self.config = config or VBRLConfig()
+        self.grid = CartesianVoxelGrid(self.config.grid)
+        f = self.config.features
+        self.layout = FeatureLayout(
+            n_voxels=self.grid.n_voxels,
+            features_per_modality=(
+                COVARIANCE_ENTRIES,
+                f.hog_length,
+                f.hog_length,
+                f.hog_length,
+                OCCUPANCY_BITS,
+            ),
+        )
+
+    @property
+    def dimension(self) -> int:
+        return self.layout.dimension
+
+    def describe(self, points: np.ndarray) -> np.ndarray:
+        """Descriptor (d,) float32 of a scan given as (N, 3+) points (extra columns ignored)."""
+        return np.concatenate([m.ravel() for m in self.modalities(points)]).astype(np.float32)
+
+    def modalities(self, points: np.ndarray) -> list[np.ndarray]:
+        """The five per-voxel feature blocks, each (n_voxels, k_i), float64."""
+        cfg = self.config.features
+        v = self.grid.n_voxels
+        size = cfg.raster_size
+        a = self.grid.assign(points, subdivisions=size)
+        px, py, pz = a.subcell
+        counts = np.bincount(a.voxel, minlength=v + 1)[:v]
+        kept = counts >= cfg.min_points  # sparser voxels count as empty
+
+        base = a.voxel * size
+        snapshots = np.concatenate(
+            [  # rows x columns: XY = y x x, XZ = z x x, YZ = z x y
+                _histogram((base + py) * size + px, v * size * size),
+                _histogram((base + pz) * size + px, v * size * size),
+                _histogram((base + pz) * size + py, v * size * size),
+            ]
+        ).reshape(3, v, size, size)
+        hog = np.zeros((3, v, cfg.hog_length))
+        if kept.any():  # empty voxels have no gradient: skip their rasters
+            rasters = snapshots[:, kept]
+            peak = rasters.max(axis=(2, 3), keepdims=True)
+            rasters /= peak  # density-independent; kept voxels have points
+            hog[:, kept] = hog_batch(
+                rasters.reshape(-1, size, size), cfg.hog_orientations, cfg.hog_cells
+            ).reshape(3, -1, cfg.hog_length)
+
+        half = size // 2  # octant bit order: x + 2y + 4z
+        octant = (px >= half) + 2 * (py >= half) + 4 * (pz >= half)
+        occupancy = _histogram(a.voxel * OCCUPANCY_BITS + octant, v * OCCUPANCY_BITS)
+        occupancy = (occupancy.reshape(v, OCCUPANCY_BITS) > 0).astype(np.float64)
+
+        covariance = _covariance(a.voxel, a.xyz, counts, v)
+        blocks = [covariance, hog[0], hog[1], hog[2], occupancy]
+        for block in blocks:
+            block[~kept] = 0.0
+        return blocks
+
+
+def _histogram(index: np.ndarray, length: int) -> np.ndarray:
+    """Counts of ``index`` in [0, length); larger indices (sentinel points) are dropped."""
+    return np.bincount(index, minlength=length + 1)[:length].astype(np.float64)
+
+
+def _covariance(voxel: np.ndarray, xyz: np.ndarray, counts: np.ndarray, v: int) -> np.ndarray:
+    """Sample covariance (n - 1 normalisation, as numpy.cov) of each voxel's points.
+
+    One pass of sums, E[pp^T] - mean mean^T, in float64: with coordinates
+    within ~100 m of the sensor the cancellation costs ~1e-12 m^2, far below
+    any real spread, so no per-voxel centring pass is needed.
+    Fewer than 2 points -> zeros.
+    """
+    x, y, z = xyz
+
+    def total(weights: np.ndarray) -> np.ndarray:
+        return np.bincount(voxel, weights=weights, minlength=v + 1)[:v]
+
+    n = counts.astype(np.float64)
+    sums = np.stack([total(x), total(y), total(z)], axis=1)
+    mean = sums / np.maximum(n, 1.0)[:, None]
+    pairs = ((x, x), (y, y), (z, z), (x, y), (x, z), (y, z))
+    index = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+    cov = np.stack(
+        [total(p * q) - sums[:, i] * mean[:, j] for (p, q), (i, j) in zip(pairs, index)], axis=1
+    )
+    cov /= np.maximum(n - 1.0, 1.0)[:, None]
+    cov[n < 2] = 0.0
+    return cov
