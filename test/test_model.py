@@ -1,0 +1,114 @@
+import json
+import zipfile
+
+import numpy as np
+import pytest
+
+from vbrl_ros.config import VBRLConfig, VoxelGridConfig
+from vbrl_ros.features import Featurizer
+from vbrl_ros.model import ModelFileError, VBRLModel, load_model
+
+CONFIG = VBRLConfig(grid=VoxelGridConfig(cells_xy=4))
+
+
+def make_model(config=CONFIG, seed=0) -> VBRLModel:
+    d = Featurizer(config).dimension
+    rng = np.random.default_rng(seed)
+    return VBRLModel(
+        config=config,
+        W=rng.normal(size=(d, 2)),
+        feature_mean=rng.normal(size=d),
+        feature_scale=rng.uniform(0.5, 2, size=d),
+        lambda1=10.0,
+        lambda2=0.1,
+        scenarios=["summer_clear", "winter_snow"],
+        metadata={"scans": 12},
+    )
+
+
+def test_round_trip(tmp_path):
+    model = make_model()
+    path = model.save(tmp_path / "model.npz")
+    loaded = load_model(path, expected_config=CONFIG)
+    assert loaded.config == CONFIG
+    for name in ("W", "feature_mean", "feature_scale", "w_modality", "w_voxel"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(model, name))
+    assert loaded.scenarios == ["summer_clear", "winter_snow"]
+    assert (loaded.lambda1, loaded.lambda2) == (10.0, 0.1)
+    assert loaded.metadata == {"scans": 12}
+    assert loaded.w_modality.sum() == pytest.approx(1.0)
+    assert not list(tmp_path.glob(".*tmp"))  # no temp file left behind
+
+
+def test_standardize_and_score():
+    model = make_model()
+    x = np.random.default_rng(1).normal(size=(3, model.layout.dimension))
+    z = model.standardize(x)
+    np.testing.assert_allclose(z, (x - model.feature_mean) / model.feature_scale, rtol=1e-5)
+    distances = model.scorer().distances(z[0], z)
+    assert distances[0] == 0 and (distances[1:] > 0).all()
+
+
+def test_truncated_file_is_one_clear_line(tmp_path):
+    path = make_model().save(tmp_path / "model.npz")
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ModelFileError, match="truncated or corrupt") as error:
+        load_model(path)
+    assert "\n" not in str(error.value)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(ModelFileError, match="does not exist"):
+        load_model(tmp_path / "nope.npz")
+
+
+def test_foreign_npz_is_refused(tmp_path):
+    path = tmp_path / "foreign.npz"
+    np.savez(path, weights=np.ones(3))
+    with pytest.raises(ModelFileError, match="not a vbrl_ros model"):
+        load_model(path)
+
+
+def test_pickled_content_is_never_loaded(tmp_path):
+    path = tmp_path / "pickled.npz"
+    np.savez(path, format=np.array("vbrl_ros.model"), format_version=np.array(1),
+             W=np.array([{"evil": 1}], dtype=object))
+    with pytest.raises(ModelFileError, match="truncated or corrupt"):
+        load_model(path)
+
+
+def test_other_version_is_refused(tmp_path):
+    path = make_model().save(tmp_path / "model.npz")
+    with np.load(path) as archive:
+        contents = dict(archive)
+    contents["format_version"] = np.array(99)
+    np.savez(path, **contents)
+    with pytest.raises(ModelFileError, match="version 99"):
+        load_model(path)
+
+
+def test_config_mismatch_names_the_setting(tmp_path):
+    path = make_model().save(tmp_path / "model.npz")
+    running = VBRLConfig(grid=VoxelGridConfig(cells_xy=8))
+    with pytest.raises(ModelFileError, match=r"grid.cells_xy: 4 != 8"):
+        load_model(path, expected_config=running)
+
+
+def test_shape_inconsistent_with_config_is_refused(tmp_path):
+    path = make_model().save(tmp_path / "model.npz")
+    with np.load(path) as archive:
+        contents = dict(archive)
+    contents["W"] = contents["W"][:-5]
+    np.savez(path, **contents)
+    with pytest.raises(ModelFileError, match="W has shape"):
+        load_model(path)
+
+
+def test_non_finite_weights_are_refused():
+    model = make_model()
+    W = model.W.copy()
+    W[0, 0] = np.nan
+    with pytest.raises(ModelFileError, match="NaN"):
+        VBRLModel(config=CONFIG, W=W, feature_mean=model.feature_mean,
+                  feature_scale=model.feature_scale, lambda1=1, lambda2=1, scenarios=["a", "b"])

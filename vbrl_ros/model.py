@@ -1,0 +1,178 @@
+"""The VBRL model file: one versioned ``.npz`` holding everything needed to score.
+
+Loaded with ``allow_pickle=False`` only: a model file is data, never code.
+Keys (all plain arrays or JSON strings):
+
+==================  =============================================================
+``format``          ``"vbrl_ros.model"`` (tells a foreign ``.npz`` apart)
+``format_version``  integer, currently 1
+``config_json``     the :class:`~vbrl_ros.config.VBRLConfig` as JSON
+``W``               (d, c) learned weights, rows laid out as ``features.FeatureLayout``
+``feature_mean``    (d,) standardisation offset of the raw descriptor
+``feature_scale``   (d,) standardisation divisor (1 where a feature never varied)
+``lambda1/2``       the regularisation weights W was trained with
+``w_modality``      (m,) modality importances, sum 1 (paper Fig. 4a)
+``w_voxel``         (v,) voxel importances, sum 1 (paper Fig. 4b)
+``scenarios_json``  the c scenario names, column order of W
+``metadata_json``   free-form training facts (scan count, objective, sources, ...)
+==================  =============================================================
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vbrl_ros.config import VBRLConfig
+from vbrl_ros.features import Featurizer, FeatureLayout
+from vbrl_ros.io.atomic import atomic_write
+from vbrl_ros.scoring import WeightedL1Scorer, importance_weights, row_weights
+
+MODEL_FORMAT = "vbrl_ros.model"
+MODEL_FORMAT_VERSION = 1
+_ARRAY_KEYS = ("W", "feature_mean", "feature_scale", "w_modality", "w_voxel")
+
+
+class ModelFileError(ValueError):
+    """A model file that cannot be used; the message is one line naming the problem."""
+
+
+@dataclass
+class VBRLModel:
+    config: VBRLConfig
+    W: np.ndarray
+    feature_mean: np.ndarray
+    feature_scale: np.ndarray
+    lambda1: float
+    lambda2: float
+    scenarios: list[str]
+    w_modality: np.ndarray = field(default=None)  # type: ignore[assignment]
+    w_voxel: np.ndarray = field(default=None)  # type: ignore[assignment]
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.layout: FeatureLayout = Featurizer(self.config).layout
+        d = self.layout.dimension
+        self.W = np.asarray(self.W, dtype=np.float64)
+        if self.W.ndim != 2 or self.W.shape[0] != d:
+            raise ModelFileError(f"W has shape {self.W.shape}, the configuration needs ({d}, c)")
+        if len(self.scenarios) != self.W.shape[1]:
+            raise ModelFileError(
+                f"{len(self.scenarios)} scenario names for {self.W.shape[1]} columns of W"
+            )
+        if self.w_modality is None or self.w_voxel is None:
+            self.w_modality, self.w_voxel = importance_weights(self.W, self.layout)
+        expected = {
+            "feature_mean": (d,),
+            "feature_scale": (d,),
+            "w_modality": (self.layout.n_modalities,),
+            "w_voxel": (self.layout.n_voxels,),
+        }
+        for name, shape in expected.items():
+            value = np.asarray(getattr(self, name), dtype=np.float64)
+            if value.shape != shape:
+                raise ModelFileError(f"{name} has shape {value.shape}, expected {shape}")
+            setattr(self, name, value)
+        for name in _ARRAY_KEYS:
+            if not np.all(np.isfinite(getattr(self, name))):
+                raise ModelFileError(f"{name} contains NaN or inf")
+        if np.any(self.feature_scale <= 0):
+            raise ModelFileError("feature_scale must be positive")
+
+    # -- using the model ---------------------------------------------------
+
+    def standardize(self, descriptors: np.ndarray) -> np.ndarray:
+        """Raw descriptors (d,) or (N, d) -> standardised float32, as W was trained on."""
+        out = (np.asarray(descriptors, dtype=np.float64) - self.feature_mean) / self.feature_scale
+        return out.astype(np.float32)
+
+    def row_weights(self) -> np.ndarray:
+        return row_weights(self.w_modality, self.w_voxel, self.layout)
+
+    def scorer(self, prune: float = 0.0) -> WeightedL1Scorer:
+        """Eq. 4 scorer with this model's importances (lower distance = more similar)."""
+        return WeightedL1Scorer(self.row_weights(), prune=prune)
+
+    def featurizer(self) -> Featurizer:
+        return Featurizer(self.config)
+
+    # -- file I/O -----------------------------------------------------------
+
+    def save(self, path: str | Path) -> Path:
+        """Write atomically (temp file + rename); the last good copy survives a crash."""
+        arrays = {name: np.asarray(getattr(self, name)) for name in _ARRAY_KEYS}
+        payload = dict(
+            format=np.array(MODEL_FORMAT),
+            format_version=np.array(MODEL_FORMAT_VERSION),
+            config_json=np.array(json.dumps(self.config.to_dict())),
+            lambda1=np.array(float(self.lambda1)),
+            lambda2=np.array(float(self.lambda2)),
+            scenarios_json=np.array(json.dumps(list(self.scenarios))),
+            metadata_json=np.array(json.dumps(self.metadata, default=str)),
+            **arrays,
+        )
+        return atomic_write(path, lambda handle: np.savez(handle, **payload))
+
+
+def load_model(path: str | Path, expected_config: VBRLConfig | None = None) -> VBRLModel:
+    """Load and validate a model file; any problem raises :class:`ModelFileError`.
+
+    With ``expected_config`` (the running featurizer's), a model trained for
+    a different grid or feature configuration is refused instead of silently
+    mis-scoring.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f"model file {path} does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            contents = {key: archive[key] for key in archive.files}
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as error:
+        raise ModelFileError(
+            f"{path} is not a readable .npz model (truncated or corrupt?): {_one_line(error)}"
+        ) from None
+    if str(contents.get("format", "")) != MODEL_FORMAT:
+        raise ModelFileError(f"{path} is not a vbrl_ros model file (no format tag '{MODEL_FORMAT}')")
+    version = int(contents.get("format_version", -1))
+    if version != MODEL_FORMAT_VERSION:
+        raise ModelFileError(
+            f"{path} has model format version {version}; this vbrl_ros reads version "
+            f"{MODEL_FORMAT_VERSION}"
+        )
+    missing = [
+        key
+        for key in (*_ARRAY_KEYS, "config_json", "lambda1", "lambda2", "scenarios_json")
+        if key not in contents
+    ]
+    if missing:
+        raise ModelFileError(f"{path} lacks {', '.join(missing)}")
+    try:
+        config = VBRLConfig.from_dict(json.loads(str(contents["config_json"])))
+        scenarios = json.loads(str(contents["scenarios_json"]))
+        metadata = json.loads(str(contents.get("metadata_json", "{}")))
+    except (ValueError, TypeError) as error:
+        raise ModelFileError(f"{path} has an invalid configuration: {_one_line(error)}") from None
+    if expected_config is not None and config != expected_config:
+        raise ModelFileError(
+            f"{path} was trained for another configuration ({'; '.join(config.differences(expected_config))})"
+        )
+    try:
+        return VBRLModel(
+            config=config,
+            scenarios=[str(s) for s in scenarios],
+            lambda1=float(contents["lambda1"]),
+            lambda2=float(contents["lambda2"]),
+            metadata=metadata,
+            **{key: contents[key] for key in _ARRAY_KEYS},
+        )
+    except ModelFileError as error:
+        raise ModelFileError(f"{path}: {error}") from None
+
+
+def _one_line(error: BaseException) -> str:
+    return " ".join(str(error).split()) or type(error).__name__
