@@ -1,0 +1,311 @@
+"""The keyframe database: Eq. 4 retrieval, recency exclusion, memory, crash-safe files."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import vbrl_ros.database as database_module
+from vbrl_ros.database import (
+    METADATA_BYTES_PER_KEYFRAME,
+    DatabaseFileError,
+    KeyframeDatabase,
+)
+from vbrl_ros.scoring import WeightedL1Scorer
+
+D = 40  # full descriptor length of the toy model
+
+
+def make_weights(seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    weights = rng.uniform(0.1, 1.0, D)
+    weights[rng.choice(D, 15, replace=False)] = 0.0  # rows the sparsity norms switched off
+    return weights / weights.sum()
+
+
+WEIGHTS = make_weights()
+SCORER = WeightedL1Scorer(WEIGHTS)
+
+
+def make_db(n: int = 0, seed: int = 1, **add_kwargs) -> tuple[KeyframeDatabase, np.ndarray]:
+    """A database of ``n`` random keyframes; also returns their full descriptors."""
+    db = KeyframeDatabase(SCORER, model_id="model-A")
+    full = np.random.default_rng(seed).normal(size=(n, D)).astype(np.float32)
+    for i, x in enumerate(full):
+        db.add(SCORER.compact(x), stamp=float(i), session="s0", **add_kwargs)
+    return db, full
+
+
+def eq4(query: np.ndarray, templates: np.ndarray) -> np.ndarray:
+    """Paper Eq. 4 over *all* rows, straight from the definition (float64)."""
+    return np.abs(templates.astype(np.float64) - query.astype(np.float64)) @ WEIGHTS
+
+
+# -- retrieval ----------------------------------------------------------------------
+
+
+def test_compact_storage_keeps_only_active_rows():
+    db, full = make_db(3)
+    assert db.n_active == D - 15
+    np.testing.assert_array_equal(db.descriptor(1), full[1, SCORER.active_rows])
+    assert db.descriptor(0).dtype == np.float32
+
+
+def test_query_matches_a_direct_eq4_computation(monkeypatch):
+    db, full = make_db(300)
+    query = np.random.default_rng(2).normal(size=D).astype(np.float32)
+    expected = eq4(query, full)
+    order = np.argsort(expected, kind="stable")[:10]
+    result = db.query(SCORER.compact(query), top_k=10)
+    assert [c.index for c in result] == list(order)
+    assert [c.keyframe_id for c in result] == list(order)  # ids 0..n-1 in insertion order
+    np.testing.assert_allclose([c.distance for c in result], expected[order], rtol=1e-5)
+    assert all(a.distance <= b.distance for a, b in zip(result, result[1:]))  # lower = closer
+    # the brute-force scan works in bounded blocks; block edges change nothing
+    monkeypatch.setattr(database_module, "_BLOCK_ELEMENTS", 7 * db.n_active)
+    assert db.query(SCORER.compact(query), top_k=10) == result
+
+
+def test_a_stored_descriptor_finds_itself_at_distance_zero():
+    db, full = make_db(50)
+    best = db.query(SCORER.compact(full[17]), top_k=1)[0]
+    assert best.index == 17 and best.distance == 0.0 and best.session == "s0"
+    assert best.stamp == 17.0
+
+
+def test_empty_database_and_non_positive_top_k_return_nothing():
+    db, _ = make_db(0)
+    assert db.query(np.zeros(db.n_active)) == []
+    db, _ = make_db(5)
+    assert db.query(np.zeros(db.n_active), top_k=0) == []
+    assert len(db.query(np.zeros(db.n_active), top_k=50)) == 5
+
+
+def test_recency_exclusion_is_same_session_only():
+    db = KeyframeDatabase(SCORER, model_id="model-A")
+    x = np.zeros(db.n_active, dtype=np.float32)
+    for t in range(10):  # session A at t = 0..9, session B at the same stamps
+        db.add(x, stamp=float(t), session="A")
+        db.add(x, stamp=float(t), session="B")
+    found = db.query(x, top_k=100, session="A", stamp=9.0, exclude_recent_s=5.0)
+    a_stamps = sorted(c.stamp for c in found if c.session == "A")
+    b_stamps = sorted(c.stamp for c in found if c.session == "B")
+    assert a_stamps == [0.0, 1.0, 2.0, 3.0, 4.0]  # stamp > 9 - 5 excluded
+    assert b_stamps == [float(t) for t in range(10)]  # other sessions: never by recency
+    # an unknown session, or no stamp, excludes nothing
+    assert len(db.query(x, top_k=100, session="C", stamp=9.0, exclude_recent_s=5.0)) == 20
+    assert len(db.query(x, top_k=100, session="A", exclude_recent_s=5.0)) == 20
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    keyframes=st.lists(
+        st.tuples(st.floats(0, 100, allow_nan=False), st.sampled_from(["A", "B", "C"])),
+        max_size=30,
+    ),
+    now=st.floats(0, 100, allow_nan=False),
+    window=st.floats(0, 50, allow_nan=False),
+)
+def test_recency_filter_property(keyframes, now, window):
+    db = KeyframeDatabase(SCORER, model_id="m")
+    rng = np.random.default_rng(0)
+    for stamp, session in keyframes:
+        db.add(rng.normal(size=db.n_active), stamp=stamp, session=session)
+    query = np.zeros(db.n_active)
+    found = db.query(query, top_k=100, session="A", stamp=now, exclude_recent_s=window)
+    recent = {i for i, (s, name) in enumerate(keyframes) if name == "A" and s > now - window}
+    assert {c.index for c in found} == set(range(len(keyframes))) - recent
+
+
+# -- ids, clouds, poses ---------------------------------------------------------------
+
+
+def test_ids_increase_and_clear_never_reuses_them():
+    db, _ = make_db(3)
+    assert db.keyframe_ids.tolist() == [0, 1, 2] and db.index_of(2) == 2
+    db.clear()
+    assert len(db) == 0 and db.sessions == []
+    assert db.add(np.zeros(db.n_active), 1.0, "s") == 3
+    with pytest.raises(KeyError):
+        db.index_of(0)
+
+
+def test_clouds_are_one_concatenated_array_and_poses_default_to_nan():
+    db = KeyframeDatabase(SCORER, model_id="m")
+    rng = np.random.default_rng(0)
+    clouds = [rng.normal(size=(n, 3)) for n in (5, 0, 7)]
+    pose = np.eye(4)
+    pose[:3, 3] = [1, 2, 3]
+    db.add(np.zeros(db.n_active), 0.0, "s", cloud=clouds[0], pose=pose)
+    db.add(np.zeros(db.n_active), 1.0, "s")  # no cloud, no pose
+    db.add(np.zeros(db.n_active), 2.0, "s", cloud=clouds[2])
+    np.testing.assert_allclose(db.cloud(0), clouds[0], rtol=1e-6)
+    assert db.cloud(1).shape == (0, 3) and db.cloud(2).dtype == np.float32
+    np.testing.assert_allclose(db.cloud(-1), clouds[2], rtol=1e-6)
+    assert db._cloud_points.ndim == 2  # one array + offsets, not a list of arrays
+    assert db._cloud_offsets[:4].tolist() == [0, 5, 5, 12]
+    np.testing.assert_array_equal(db.pose(0), pose)
+    assert np.isnan(db.pose(1)).all()
+    assert db.cloud_bytes_per_keyframe() == pytest.approx(12 * 12 / 3)
+
+
+def test_invalid_input_is_refused():
+    db, _ = make_db(1)
+    with pytest.raises(ValueError, match=r"scorer.compact"):
+        db.add(np.zeros(D), 0.0, "s")  # a full descriptor: forgot to compact it
+    with pytest.raises(ValueError, match="NaN"):
+        db.add(np.full(db.n_active, np.nan), 0.0, "s")
+    with pytest.raises(ValueError, match="stamp"):
+        db.add(np.zeros(db.n_active), float("nan"), "s")
+    with pytest.raises(ValueError, match="4x4"):
+        db.add(np.zeros(db.n_active), 0.0, "s", pose=np.eye(3))
+    with pytest.raises(ValueError, match=r"\(M, 3\)"):
+        db.add(np.zeros(db.n_active), 0.0, "s", cloud=np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="compact descriptor"):
+        db.query(np.zeros(3))
+    assert len(db) == 1  # nothing half-added
+
+
+# -- memory and growth -----------------------------------------------------------------
+
+
+def test_bytes_per_keyframe_is_active_rows_times_four_plus_metadata():
+    db, _ = make_db(0)
+    assert db.bytes_per_keyframe() == (D - 15) * 4 + METADATA_BYTES_PER_KEYFRAME
+    full = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), model_id="default")
+    assert full.bytes_per_keyframe() == 7872 * 4 + METADATA_BYTES_PER_KEYFRAME == 31644
+    assert full.cloud_bytes_per_keyframe() == 0.0
+
+
+def test_add_is_amortised_constant_time():
+    db = KeyframeDatabase(WeightedL1Scorer(np.ones(8)), model_id="m")
+    x = np.zeros(8, dtype=np.float32)
+    capacities = []
+    for i in range(20_000):
+        db.add(x, float(i), "s")
+        if not capacities or db.capacity != capacities[-1]:
+            capacities.append(db.capacity)
+    # geometric growth: every reallocation at least doubles, so there are only
+    # log2(20000 / 64) ~ 9 of them and each add copies O(1) rows on average
+    assert all(b >= 2 * a for a, b in zip(capacities, capacities[1:]))
+    assert len(capacities) <= 10 and db.capacity < 2 * 20_000 + 64
+    assert len(db) == 20_000 and db.keyframe_ids[-1] == 19_999
+
+
+# -- files -------------------------------------------------------------------------------
+
+
+def test_save_load_round_trip_and_ids_continue(tmp_path):
+    db, full = make_db(20, cloud=np.ones((4, 3)))
+    db.add(SCORER.compact(full[0]), 99.0, "other", pose=np.eye(4))
+    path = db.save(tmp_path / "kf.npz")
+    loaded = KeyframeDatabase.load(path, SCORER, "model-A")
+    assert len(loaded) == 21 and loaded.sessions == ["s0", "other"]
+    np.testing.assert_array_equal(loaded.keyframe_ids, db.keyframe_ids)
+    np.testing.assert_array_equal(loaded.stamps, db.stamps)
+    for i in (0, 20):
+        np.testing.assert_array_equal(loaded.descriptor(i), db.descriptor(i))
+        np.testing.assert_array_equal(loaded.cloud(i), db.cloud(i))
+        np.testing.assert_array_equal(loaded.pose(i), db.pose(i))
+        assert loaded.session_of(i) == db.session_of(i)
+    query = SCORER.compact(full[3])
+    assert loaded.query(query, top_k=5) == db.query(query, top_k=5)
+    assert loaded.add(query, 100.0, "s0") == 21  # ids continue, never restart
+    assert not list(tmp_path.glob(".*tmp"))
+
+
+def test_ids_survive_clear_and_save(tmp_path):
+    db, _ = make_db(5)
+    db.clear()
+    path = db.save(tmp_path / "kf.npz")
+    loaded = KeyframeDatabase.load(path, SCORER, "model-A")
+    assert len(loaded) == 0 and loaded.add(np.zeros(loaded.n_active), 0.0, "s") == 5
+
+
+def test_crash_mid_save_keeps_the_last_good_file(tmp_path, monkeypatch):
+    db, full = make_db(10)
+    path = db.save(tmp_path / "kf.npz")
+    db.add(SCORER.compact(full[0]), 50.0, "s0")
+    real_savez = np.savez
+
+    def crashing_savez(handle, **arrays):  # writes half an archive, then dies
+        buffer = io.BytesIO()
+        real_savez(buffer, **arrays)
+        handle.write(buffer.getvalue()[: len(buffer.getvalue()) // 2])
+        raise OSError("disk full")
+
+    monkeypatch.setattr(database_module.np, "savez", crashing_savez)
+    with pytest.raises(OSError, match="disk full"):
+        db.save(path)
+    monkeypatch.undo()
+    assert len(KeyframeDatabase.load(path, SCORER, "model-A")) == 10
+    assert not list(tmp_path.glob(".*tmp"))
+
+
+def _assert_refused(path, match, model_id="model-A", scorer=SCORER):
+    with pytest.raises(DatabaseFileError, match=match) as error:
+        KeyframeDatabase.load(path, scorer, model_id)
+    assert "\n" not in str(error.value)
+
+
+def test_truncated_file_is_refused(tmp_path):
+    path = make_db(10)[0].save(tmp_path / "kf.npz")
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    _assert_refused(path, "truncated")
+
+
+def test_missing_and_foreign_files_are_refused(tmp_path):
+    _assert_refused(tmp_path / "nothing.npz", "does not exist")
+    (tmp_path / "text.npz").write_text("hello")
+    _assert_refused(tmp_path / "text.npz", "not a readable")
+    np.savez(tmp_path / "foreign.npz", W=np.ones(3))
+    _assert_refused(tmp_path / "foreign.npz", "not a vbrl_ros keyframe database")
+    np.savez(tmp_path / "model.npz", format=np.array("vbrl_ros.model"), format_version=np.array(1))
+    _assert_refused(tmp_path / "model.npz", "not a vbrl_ros keyframe database")
+
+
+def _rewrite(path, **changes):
+    with np.load(path, allow_pickle=False) as archive:
+        contents = {key: archive[key] for key in archive.files}
+    contents.update(changes)
+    with open(path, "wb") as handle:
+        np.savez(handle, **contents)
+
+
+def test_pickled_object_arrays_are_refused(tmp_path):
+    path = make_db(3)[0].save(tmp_path / "kf.npz")
+    _rewrite(path, stamps=np.array([{"evil": 1}, None, 3], dtype=object))
+    _assert_refused(path, "allow_pickle=False")
+
+
+def test_other_version_model_and_pruning_are_refused(tmp_path):
+    db, _ = make_db(3)
+    path = db.save(tmp_path / "kf.npz")
+    _assert_refused(path, "built with model 'model-A'", model_id="model-B")
+    pruned = WeightedL1Scorer(WEIGHTS, prune=0.5)
+    _assert_refused(path, "different pruning", scorer=pruned)
+    _rewrite(path, format_version=np.array(2))
+    _assert_refused(path, "format version 2")
+
+
+def test_inconsistent_contents_are_refused(tmp_path):
+    path = make_db(3)[0].save(tmp_path / "kf.npz")
+    _rewrite(path, keyframe_ids=np.array([0, 2, 1]))
+    _assert_refused(path, "strictly increasing")
+    path = make_db(3)[0].save(tmp_path / "kf.npz")
+    _rewrite(path, stamps=np.zeros(2))
+    _assert_refused(path, "inconsistent")
+    path = make_db(3)[0].save(tmp_path / "kf.npz")
+    with zipfile.ZipFile(path) as archive:
+        names = [n for n in archive.namelist() if n != "poses.npy"]
+        members = {n: archive.read(n) for n in names}
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
+    _assert_refused(path, "lacks poses")

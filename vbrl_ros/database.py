@@ -1,0 +1,425 @@
+"""The keyframe database: the online node's long-term memory of places.
+
+Per keyframe it keeps the *compact* standardised descriptor (float32, only the
+scorer's active rows — rows the learned sparsity switched off cost no memory),
+the stamp, the session, a unique keyframe id, an optional pose and an optional
+downsampled cloud for geometric verification.
+
+Storage is a set of growable column arrays with amortised doubling, so
+:meth:`KeyframeDatabase.add` is O(1) amortised; clouds live in one
+concatenated ``(P, 3)`` float32 array plus ``offsets`` (keyframe ``i`` owns
+``points[offsets[i]:offsets[i + 1]]``), never a list of small arrays.
+
+Distances are Eq. 4 (:class:`~vbrl_ros.scoring.WeightedL1Scorer`):
+**lower = more similar**. Retrieval is a vectorised brute-force scan confined to
+:meth:`KeyframeDatabase._distances` so an index can replace it later.
+
+On disk: one versioned ``.npz`` (``format="vbrl_ros.keyframes"``,
+``format_version=1``) written atomically, loaded with ``allow_pickle=False``.
+It records the ``model_id`` and the scorer's active rows, because descriptors
+compacted/standardised for one model are meaningless under another.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vbrl_ros.io.atomic import atomic_write
+from vbrl_ros.scoring import WeightedL1Scorer
+
+DATABASE_FORMAT = "vbrl_ros.keyframes"
+DATABASE_FORMAT_VERSION = 1
+_INITIAL_CAPACITY = 64
+# Bound the (rows x active) temporary of one brute-force block (~16 MB float32),
+# so a 100k-keyframe scan never allocates the whole |T - q| matrix at once.
+_BLOCK_ELEMENTS = 4 * 1024 * 1024
+# Fixed per-keyframe metadata: stamp f64 + session index i32 + id i64
+# + pose 4x4 f64 + cloud offset i64.
+METADATA_BYTES_PER_KEYFRAME = 8 + 4 + 8 + 16 * 8 + 8
+_ARRAY_KEYS = (
+    "descriptors", "stamps", "session_index", "keyframe_ids", "poses",
+    "cloud_offsets", "cloud_points",
+)  # fmt: skip
+
+
+class DatabaseFileError(ValueError):
+    """A keyframe database file that cannot be used; one-line message naming the problem."""
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One retrieval result. ``distance`` is Eq. 4: lower = more similar."""
+
+    index: int  # row in the database (changes on clear(); keyframe_id does not repeat)
+    keyframe_id: int
+    distance: float
+    stamp: float
+    session: str
+
+
+def _grown(array: np.ndarray, needed: int) -> np.ndarray:
+    """``array`` with capacity >= needed along axis 0, doubling so growth is amortised O(1)."""
+    capacity = len(array)
+    if needed <= capacity:
+        return array
+    new_capacity = max(needed, 2 * capacity, _INITIAL_CAPACITY)
+    out = np.empty((new_capacity, *array.shape[1:]), dtype=array.dtype)
+    out[:capacity] = array
+    return out
+
+
+class KeyframeDatabase:
+    """Keyframes scored with one model's :class:`WeightedL1Scorer` (lower distance = closer)."""
+
+    def __init__(self, scorer: WeightedL1Scorer, model_id: str) -> None:
+        self.scorer = scorer
+        self.model_id = str(model_id)
+        self.n_active = len(scorer.active_rows)
+        self._next_id = 0
+        self._reset_storage()
+
+    def _reset_storage(self) -> None:
+        self._size = 0
+        self._n_points = 0
+        self._sessions: list[str] = []
+        self._session_lookup: dict[str, int] = {}
+        c = _INITIAL_CAPACITY
+        self._descriptors = np.empty((c, self.n_active), dtype=np.float32)
+        self._stamps = np.empty(c, dtype=np.float64)
+        self._session_index = np.empty(c, dtype=np.int32)
+        self._keyframe_ids = np.empty(c, dtype=np.int64)
+        self._poses = np.empty((c, 4, 4), dtype=np.float64)
+        self._cloud_offsets = np.zeros(c + 1, dtype=np.int64)  # offsets[0] = 0 always
+        self._cloud_points = np.empty((0, 3), dtype=np.float32)
+
+    # -- size and accessors ---------------------------------------------------
+
+    def __len__(self) -> int:
+        return self._size
+
+    @property
+    def capacity(self) -> int:
+        """Keyframes storable before the next (doubling) reallocation."""
+        return len(self._stamps)
+
+    @property
+    def next_keyframe_id(self) -> int:
+        return self._next_id
+
+    @property
+    def sessions(self) -> list[str]:
+        return list(self._sessions)
+
+    @property
+    def keyframe_ids(self) -> np.ndarray:
+        return self._keyframe_ids[: self._size].copy()
+
+    @property
+    def stamps(self) -> np.ndarray:
+        return self._stamps[: self._size].copy()
+
+    def session_of(self, index: int) -> str:
+        return self._sessions[self._session_index[self._check_index(index)]]
+
+    def descriptor(self, index: int) -> np.ndarray:
+        return self._descriptors[self._check_index(index)].copy()
+
+    def pose(self, index: int) -> np.ndarray:
+        """T_world_lidar (4x4); all-NaN when the pose was not given."""
+        return self._poses[self._check_index(index)].copy()
+
+    def cloud(self, index: int) -> np.ndarray:
+        """The stored (M, 3) float32 cloud (M = 0 when none was given)."""
+        i = self._check_index(index)
+        return self._cloud_points[self._cloud_offsets[i] : self._cloud_offsets[i + 1]].copy()
+
+    def index_of(self, keyframe_id: int) -> int:
+        """Row of a keyframe id; ids are increasing, so a binary search."""
+        ids = self._keyframe_ids[: self._size]
+        i = int(np.searchsorted(ids, keyframe_id))
+        if i == self._size or ids[i] != keyframe_id:
+            raise KeyError(f"no keyframe with id {keyframe_id}")
+        return i
+
+    def _check_index(self, index: int) -> int:
+        if not -self._size <= index < self._size:
+            raise IndexError(f"keyframe index {index} out of range for {self._size} keyframes")
+        return index % self._size
+
+    # -- memory -------------------------------------------------------------
+
+    def bytes_per_keyframe(self) -> int:
+        """Fixed bytes per keyframe: compact descriptor (active rows x 4) + metadata, no cloud."""
+        return self.n_active * np.dtype(np.float32).itemsize + METADATA_BYTES_PER_KEYFRAME
+
+    def cloud_bytes_per_keyframe(self) -> float:
+        """Mean bytes of stored cloud per keyframe (12 per point; 0 for an empty database)."""
+        return 12.0 * self._n_points / self._size if self._size else 0.0
+
+    # -- writing --------------------------------------------------------------
+
+    def add(
+        self,
+        descriptor_compact: np.ndarray,
+        stamp: float,
+        session: str,
+        *,
+        pose: np.ndarray | None = None,
+        cloud: np.ndarray | None = None,
+    ) -> int:
+        """Append one keyframe; returns its new keyframe id (O(1) amortised)."""
+        descriptor = self._check_descriptor(descriptor_compact)
+        stamp = float(stamp)
+        if not math.isfinite(stamp):
+            raise ValueError(f"stamp must be finite, got {stamp}")
+        if pose is None:
+            pose_array = np.full((4, 4), np.nan)
+        else:
+            pose_array = np.asarray(pose, dtype=np.float64)
+            if pose_array.shape != (4, 4):
+                raise ValueError(f"pose must be 4x4, got shape {pose_array.shape}")
+        points = np.empty((0, 3), np.float32) if cloud is None else np.asarray(cloud, np.float32)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise ValueError(f"cloud must have shape (M, 3), got {points.shape}")
+
+        n = self._size
+        self._descriptors = _grown(self._descriptors, n + 1)
+        self._stamps = _grown(self._stamps, n + 1)
+        self._session_index = _grown(self._session_index, n + 1)
+        self._keyframe_ids = _grown(self._keyframe_ids, n + 1)
+        self._poses = _grown(self._poses, n + 1)
+        self._cloud_offsets = _grown(self._cloud_offsets, n + 2)
+        self._cloud_points = _grown(self._cloud_points, self._n_points + len(points))
+
+        self._descriptors[n] = descriptor
+        self._stamps[n] = stamp
+        self._session_index[n] = self._session_id(str(session))
+        self._keyframe_ids[n] = self._next_id
+        self._poses[n] = pose_array
+        self._cloud_points[self._n_points : self._n_points + len(points)] = points
+        self._n_points += len(points)
+        self._cloud_offsets[n + 1] = self._n_points
+        self._size = n + 1
+        self._next_id += 1
+        return self._next_id - 1
+
+    def clear(self) -> None:
+        """Forget every keyframe and free the memory. Ids keep increasing (never reused)."""
+        self._reset_storage()
+
+    def _session_id(self, session: str) -> int:
+        index = self._session_lookup.get(session)
+        if index is None:
+            index = self._session_lookup[session] = len(self._sessions)
+            self._sessions.append(session)
+        return index
+
+    def _check_descriptor(self, descriptor: np.ndarray) -> np.ndarray:
+        descriptor = np.asarray(descriptor, dtype=np.float32)
+        if descriptor.shape != (self.n_active,):
+            hint = " (pass scorer.compact(descriptor))" if descriptor.shape == (
+                self.scorer.dimension,
+            ) else ""
+            raise ValueError(
+                f"compact descriptor must have shape ({self.n_active},), got "
+                f"{descriptor.shape}{hint}"
+            )
+        if not np.all(np.isfinite(descriptor)):
+            raise ValueError("descriptor contains NaN or inf")
+        return descriptor
+
+    # -- retrieval ------------------------------------------------------------
+
+    def query(
+        self,
+        descriptor_compact: np.ndarray,
+        *,
+        top_k: int = 5,
+        session: str | None = None,
+        stamp: float | None = None,
+        exclude_recent_s: float = 0.0,
+    ) -> list[Candidate]:
+        """The ``top_k`` closest keyframes, sorted by distance ascending (lower = more similar).
+
+        Keyframes of the *same* ``session`` whose stamp is > ``stamp - exclude_recent_s``
+        are excluded (the robot's own recent past is not a loop closure); keyframes
+        of other sessions are never excluded by recency. Without ``session`` or
+        ``stamp`` nothing is excluded. Ties are broken by insertion order.
+        """
+        query = self._check_descriptor(descriptor_compact)
+        if top_k <= 0 or self._size == 0:
+            return []
+        distances = self._distances(query)
+        if session is not None and stamp is not None:
+            session_id = self._session_lookup.get(str(session))
+            if session_id is not None:
+                recent = (self._session_index[: self._size] == session_id) & (
+                    self._stamps[: self._size] > float(stamp) - float(exclude_recent_s)
+                )
+                distances[recent] = np.inf
+        valid = np.flatnonzero(np.isfinite(distances))
+        if len(valid) > top_k:
+            # O(N) selection, then sort only the k survivors
+            valid = valid[np.argpartition(distances[valid], top_k - 1)[:top_k]]
+        order = valid[np.lexsort((valid, distances[valid]))]
+        return [
+            Candidate(
+                index=int(i),
+                keyframe_id=int(self._keyframe_ids[i]),
+                distance=float(distances[i]),
+                stamp=float(self._stamps[i]),
+                session=self._sessions[self._session_index[i]],
+            )
+            for i in order
+        ]
+
+    def _distances(self, query: np.ndarray) -> np.ndarray:
+        """Eq. 4 distance (float64, (N,)) from ``query`` to every stored keyframe.
+
+        The one place that touches all descriptors: an approximate index replaces
+        this method without changing :meth:`query`'s filtering and ordering.
+        """
+        out = np.empty(self._size, dtype=np.float64)
+        block = max(1, _BLOCK_ELEMENTS // max(1, self.n_active))
+        for start in range(0, self._size, block):
+            stop = min(start + block, self._size)
+            out[start:stop] = self.scorer.distances_compact(query, self._descriptors[start:stop])
+        return out
+
+    # -- persistence ----------------------------------------------------------
+
+    def save(self, path: str | Path) -> Path:
+        """Write one versioned ``.npz`` atomically (temp file + rename)."""
+        n, p = self._size, self._n_points
+        payload = dict(
+            format=np.array(DATABASE_FORMAT),
+            format_version=np.array(DATABASE_FORMAT_VERSION),
+            model_id=np.array(self.model_id),
+            dimension=np.array(self.scorer.dimension, dtype=np.int64),
+            active_rows=np.asarray(self.scorer.active_rows, dtype=np.int64),
+            sessions_json=np.array(json.dumps(self._sessions)),
+            next_keyframe_id=np.array(self._next_id, dtype=np.int64),
+            descriptors=self._descriptors[:n],
+            stamps=self._stamps[:n],
+            session_index=self._session_index[:n],
+            keyframe_ids=self._keyframe_ids[:n],
+            poses=self._poses[:n],
+            cloud_offsets=self._cloud_offsets[: n + 1],
+            cloud_points=self._cloud_points[:p],
+        )
+        return atomic_write(path, lambda handle: np.savez(handle, **payload))
+
+    @classmethod
+    def load(cls, path: str | Path, scorer: WeightedL1Scorer, model_id: str) -> KeyframeDatabase:
+        """Load and validate; any problem raises :class:`DatabaseFileError` (one line)."""
+        path = Path(path)
+        if not path.is_file():
+            raise DatabaseFileError(f"keyframe database {path} does not exist")
+        try:
+            with np.load(path, allow_pickle=False) as archive:
+                contents = {key: archive[key] for key in archive.files}
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as error:
+            raise DatabaseFileError(
+                f"{path} is not a readable .npz keyframe database (truncated, corrupt or "
+                f"pickled?): {_one_line(error)}"
+            ) from None
+        if _scalar_str(contents.get("format")) != DATABASE_FORMAT:
+            raise DatabaseFileError(
+                f"{path} is not a vbrl_ros keyframe database (no format tag '{DATABASE_FORMAT}')"
+            )
+        version = _scalar_int(contents.get("format_version"))
+        if version != DATABASE_FORMAT_VERSION:
+            raise DatabaseFileError(
+                f"{path} has keyframe database format version {version}; this vbrl_ros reads "
+                f"version {DATABASE_FORMAT_VERSION}"
+            )
+        required = ("model_id", "dimension", "active_rows", "sessions_json", "next_keyframe_id")
+        missing = [key for key in (*required, *_ARRAY_KEYS) if key not in contents]
+        if missing:
+            raise DatabaseFileError(f"{path} lacks {', '.join(missing)}")
+        stored_model = _scalar_str(contents["model_id"])
+        if stored_model != str(model_id):
+            raise DatabaseFileError(
+                f"{path} was built with model '{stored_model}', not the running model '{model_id}'"
+            )
+        active = contents["active_rows"]
+        dimension = _scalar_int(contents["dimension"])
+        if dimension != scorer.dimension or not np.array_equal(
+            active, scorer.active_rows
+        ):
+            raise DatabaseFileError(
+                f"{path} stores {active.size} active rows of a {dimension}-row "
+                f"descriptor; the scorer uses {len(scorer.active_rows)} of {scorer.dimension} "
+                "(different pruning?)"
+            )
+        try:
+            sessions = json.loads(_scalar_str(contents["sessions_json"]))
+            if not isinstance(sessions, list):
+                raise ValueError("sessions_json is not a list")
+            db = cls(scorer, model_id)
+            db._restore(contents, [str(s) for s in sessions])
+        except (ValueError, TypeError) as error:
+            raise DatabaseFileError(f"{path} is inconsistent: {_one_line(error)}") from None
+        return db
+
+    def _restore(self, c: dict[str, np.ndarray], sessions: list[str]) -> None:
+        """Adopt loaded arrays after checking their shapes and invariants."""
+        n = len(c["stamps"])
+        expected = {
+            "descriptors": ((n, self.n_active), "f"),
+            "stamps": ((n,), "f"),
+            "session_index": ((n,), "i"),
+            "keyframe_ids": ((n,), "i"),
+            "poses": ((n, 4, 4), "f"),
+            "cloud_offsets": ((n + 1,), "i"),
+        }
+        for key, (shape, kind) in expected.items():
+            if c[key].shape != shape or c[key].dtype.kind != kind:
+                raise ValueError(f"{key} has shape {c[key].shape} {c[key].dtype}, expected {shape}")
+        points, offsets, ids = c["cloud_points"], c["cloud_offsets"], c["keyframe_ids"]
+        if points.ndim != 2 or points.shape[1] != 3 or points.dtype.kind != "f":
+            raise ValueError(f"cloud_points has shape {points.shape}, expected (P, 3)")
+        if offsets[0] != 0 or offsets[-1] != len(points) or np.any(np.diff(offsets) < 0):
+            raise ValueError("cloud_offsets do not partition cloud_points")
+        if n and (np.any(np.diff(ids) <= 0) or ids[0] < 0):
+            raise ValueError("keyframe ids are not strictly increasing")
+        next_id = _scalar_int(c["next_keyframe_id"])
+        if next_id < 0 or (n and next_id <= ids[-1]):
+            raise ValueError("next_keyframe_id would reuse an id")
+        if n and (c["session_index"].min() < 0 or c["session_index"].max() >= len(sessions)):
+            raise ValueError("session index outside the session table")
+        if not np.all(np.isfinite(c["descriptors"])) or not np.all(np.isfinite(c["stamps"])):
+            raise ValueError("descriptors or stamps contain NaN or inf")
+
+        self._size, self._n_points, self._next_id = n, len(points), next_id
+        self._sessions = sessions
+        self._session_lookup = {name: i for i, name in enumerate(sessions)}
+        self._descriptors = c["descriptors"].astype(np.float32, copy=False)
+        self._stamps = c["stamps"].astype(np.float64, copy=False)
+        self._session_index = c["session_index"].astype(np.int32, copy=False)
+        self._keyframe_ids = ids.astype(np.int64, copy=False)
+        self._poses = c["poses"].astype(np.float64, copy=False)
+        self._cloud_offsets = offsets.astype(np.int64, copy=False)
+        self._cloud_points = points.astype(np.float32, copy=False)
+
+
+def _scalar_str(value: np.ndarray | None) -> str:
+    if value is None or value.shape != () or value.dtype.kind not in "US":
+        return ""
+    return str(value)
+
+
+def _scalar_int(value: np.ndarray | None) -> int:
+    if value is None or value.shape != () or value.dtype.kind not in "iu":
+        return -1
+    return int(value)
+
+
+def _one_line(error: BaseException) -> str:
+    return " ".join(str(error).split()) or type(error).__name__
