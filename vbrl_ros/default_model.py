@@ -1,0 +1,87 @@
+"""The built-in default model: trained on the simulator's scenarios, shipped with the package.
+
+It lets ``vbrl_node`` work out of the box. Rebuild it with::
+
+    vbrl demo --rebuild-default-model
+
+which simulates the scenarios below, trains W and overwrites
+``vbrl_ros/data/default_model.npz``. Deterministic for the seeds given here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vbrl_ros.config import VBRLConfig
+from vbrl_ros.model import ModelFileError, VBRLModel, load_model
+from vbrl_ros.training.fit import TrainingResult, fit_model
+from vbrl_ros.training.keyframes import featurize
+
+DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "data" / "default_model.npz"
+
+
+@dataclass(frozen=True)
+class SimulatedTrainingSpec:
+    """What the default model is trained on (the town of ``town_seed``; tests use other towns)."""
+
+    scenarios: tuple[str, ...] = ("summer_clear", "winter_snow", "autumn_fog")
+    town_seed: int = 0
+    run_seeds: tuple[int, ...] = (101, 102, 103)
+    loops: int = 2
+    keyframe_spacing_m: float = 4.0
+    beams: int = 64
+    columns: int = 1800
+    lambda1: float = 10.0
+    lambda2: float = 0.1
+
+
+def simulated_training_data(
+    spec: SimulatedTrainingSpec, config: VBRLConfig, progress: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(descriptors, scenario labels, positions) of every keyframe of every scenario."""
+    from vbrl_ros.simulator import LidarConfig, RouteConfig, generate_town, make_route, simulate_run
+
+    town = generate_town(seed=spec.town_seed)
+    route = make_route(town, RouteConfig(loops=spec.loops, spacing_m=spec.keyframe_spacing_m))
+    lidar = LidarConfig(beams=spec.beams, columns=spec.columns)
+    rows, labels, positions = [], [], []
+    for k, (name, seed) in enumerate(zip(spec.scenarios, spec.run_seeds)):
+        run = simulate_run(town, route, lidar, name, seed=seed)
+        rows.append(featurize((scan.points for scan in run), config, total=len(run),
+                              progress=progress, description=f"simulating {name}"))
+        labels.append(np.full(len(run), k))
+        positions.append(run.poses[:, :3, 3])
+    return np.concatenate(rows), np.concatenate(labels), np.concatenate(positions)
+
+
+def build_default_model(
+    out: Path = DEFAULT_MODEL_PATH, spec: SimulatedTrainingSpec | None = None, progress: bool = True
+) -> TrainingResult:
+    from vbrl_ros.training.threshold import recommended_threshold
+
+    spec = spec or SimulatedTrainingSpec()
+    config = VBRLConfig()
+    descriptors, labels, positions = simulated_training_data(spec, config, progress)
+    result = fit_model(
+        descriptors, labels, list(spec.scenarios), config,
+        lambda1=spec.lambda1, lambda2=spec.lambda2,
+        metadata={"trained_on": f"simulator: {spec}"},
+    )
+    model = result.model
+    model.metadata["distance_threshold"] = recommended_threshold(
+        model, descriptors, labels, positions
+    )
+    model.save(out)
+    return result
+
+
+def load_default_model() -> VBRLModel:
+    if not DEFAULT_MODEL_PATH.is_file():
+        raise ModelFileError(
+            f"the built-in default model {DEFAULT_MODEL_PATH} is missing; "
+            "rebuild it with `vbrl demo --rebuild-default-model` or set model_path"
+        )
+    return load_model(DEFAULT_MODEL_PATH)
