@@ -1,0 +1,39 @@
+from pathlib import Path
+
+import pytest
+import yaml
+
+from vbrl_ros.node_settings import NodeSettings, SettingsError
+
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "vbrl.yaml"
+
+
+def test_yaml_defaults_equal_the_code_defaults():
+    params = yaml.safe_load(CONFIG.read_text())["/**"]["ros__parameters"]
+    assert params == NodeSettings.defaults()
+    assert NodeSettings.from_values(params) == NodeSettings()
+
+
+@pytest.mark.parametrize(
+    "name, value, message",
+    [
+        ("keyframe_distance", 0.0, "keyframe_distance"),
+        ("keyframe_interval", -1.0, "keyframe_interval"),
+        ("min_fitness", 1.5, "min_fitness"),
+        ("top_k", 0, "top_k"),
+        ("save_every", -3, "save_every"),
+        ("session_id", -2, "session_id"),
+        ("cloud_topic", "", "cloud_topic"),
+        ("top_k", "five", "top_k"),
+        ("verify", 1, "verify"),
+        ("distance_threshold", float("nan"), "distance_threshold"),
+        ("no_such_parameter", 1, "no_such_parameter"),
+    ],
+)
+def test_bad_values_name_the_parameter(name, value, message):
+    with pytest.raises(SettingsError, match=message):
+        NodeSettings.from_values({name: value})
+
+
+def test_integers_are_accepted_for_floats():
+    assert NodeSettings.from_values({"keyframe_distance": 2}).keyframe_distance == 2.0

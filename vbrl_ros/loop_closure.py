@@ -1,0 +1,123 @@
+"""Online loop-closure detection without ROS: keyframes in, verified candidates out.
+
+The node is a thin adapter around :class:`LoopClosureDetector`; tests and
+offline tools drive it directly with numpy scans.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vbrl_ros.database import KeyframeDatabase
+from vbrl_ros.model import VBRLModel
+from vbrl_ros.registration import downsample_for_storage, verify_loop
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Policy of the detector; every value is validated (the node maps parameters onto it)."""
+
+    session: str = "default"
+    distance_threshold: float = 0.5  # accept candidates with Eq. 4 distance below this
+    exclude_recent_s: float = 30.0  # same-session keyframes younger than this are not candidates
+    top_k: int = 3  # candidates scored (and at most verified) per keyframe
+    max_closures: int = 1  # accepted closures published per keyframe
+    verify: bool = True  # KISS-ICP registration of each candidate
+    min_fitness: float = 0.5  # verified closures below this inlier fraction are rejected
+    verification_voxel: float = 1.0  # metres; stored clouds and registration use this voxel
+
+    def __post_init__(self) -> None:
+        checks = {
+            "session": bool(self.session) and isinstance(self.session, str),
+            "distance_threshold": math.isfinite(self.distance_threshold) and self.distance_threshold > 0,
+            "exclude_recent_s": math.isfinite(self.exclude_recent_s) and self.exclude_recent_s >= 0,
+            "top_k": isinstance(self.top_k, int) and self.top_k >= 1,
+            "max_closures": isinstance(self.max_closures, int) and self.max_closures >= 1,
+            "min_fitness": 0.0 <= self.min_fitness <= 1.0,
+            "verification_voxel": math.isfinite(self.verification_voxel) and self.verification_voxel > 0,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"invalid {name}: {getattr(self, name)!r}")
+
+
+@dataclass(frozen=True)
+class LoopClosure:
+    """One accepted candidate. ``T_query_match`` maps match-frame points into the query frame."""
+
+    query_id: int
+    match_id: int
+    query_stamp: float
+    match_stamp: float
+    query_session: str
+    match_session: str
+    distance: float  # Eq. 4, lower = more similar
+    T_query_match: np.ndarray | None = None
+    fitness: float = float("nan")
+    covariance: np.ndarray | None = None  # 6x6 over [x, y, z, roll, pitch, yaw]
+
+
+@dataclass
+class KeyframeResult:
+    keyframe_id: int
+    closures: list[LoopClosure]
+    candidates_scored: int
+    rejected_by_verification: int
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class LoopClosureDetector:
+    """Featurize a keyframe, find it in the database, verify, then remember it."""
+
+    def __init__(self, model: VBRLModel, database: KeyframeDatabase, config: DetectorConfig) -> None:
+        self.model = model
+        self.database = database
+        self.config = config
+        self.featurizer = model.featurizer()
+        self.scorer = database.scorer
+
+    def process_keyframe(
+        self, points: np.ndarray, stamp: float, pose: np.ndarray | None = None
+    ) -> KeyframeResult:
+        cfg = self.config
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        descriptor = self.scorer.compact(self.model.standardize(self.featurizer.describe(points)))
+        t1 = time.perf_counter()
+        candidates = self.database.query(
+            descriptor, top_k=cfg.top_k, session=cfg.session, stamp=stamp,
+            exclude_recent_s=cfg.exclude_recent_s,
+        )
+        t2 = time.perf_counter()
+        cloud = downsample_for_storage(points, cfg.verification_voxel) if cfg.verify else None
+        closures: list[LoopClosure] = []
+        rejected = 0
+        for candidate in candidates:
+            if candidate.distance >= cfg.distance_threshold or len(closures) >= cfg.max_closures:
+                break  # sorted by distance: nothing further can pass
+            closure = LoopClosure(
+                query_id=self.database.next_keyframe_id, match_id=candidate.keyframe_id,
+                query_stamp=stamp, match_stamp=candidate.stamp, query_session=cfg.session,
+                match_session=candidate.session, distance=float(candidate.distance),
+            )
+            if cfg.verify:
+                match_cloud = self.database.cloud(candidate.index)
+                check = verify_loop(cloud, match_cloud, voxel_size=cfg.verification_voxel)
+                if not check.converged or check.fitness < cfg.min_fitness:
+                    rejected += 1
+                    continue
+                closure = LoopClosure(
+                    **{**closure.__dict__, "T_query_match": check.T_query_match,
+                       "fitness": check.fitness, "covariance": check.covariance}
+                )
+            closures.append(closure)
+        t3 = time.perf_counter()
+        keyframe_id = self.database.add(descriptor, stamp, cfg.session, pose=pose, cloud=cloud)
+        t4 = time.perf_counter()
+        timings.update(describe=1e3 * (t1 - t0), query=1e3 * (t2 - t1),
+                       verify=1e3 * (t3 - t2), insert=1e3 * (t4 - t3))
+        return KeyframeResult(keyframe_id, closures, len(candidates), rejected, timings)
