@@ -112,3 +112,10 @@ def test_non_finite_weights_are_refused():
     with pytest.raises(ModelFileError, match="NaN"):
         VBRLModel(config=CONFIG, W=W, feature_mean=model.feature_mean,
                   feature_scale=model.feature_scale, lambda1=1, lambda2=1, scenarios=["a", "b"])
+
+
+def test_identity_follows_content_not_file(tmp_path):
+    model = make_model()
+    again = load_model(model.save(tmp_path / "a.npz"))
+    assert again.identity() == model.identity()
+    assert make_model(seed=1).identity() != model.identity()

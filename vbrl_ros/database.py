@@ -124,6 +124,11 @@ class KeyframeDatabase:
     def stamps(self) -> np.ndarray:
         return self._stamps[: self._size].copy()
 
+    @property
+    def poses(self) -> np.ndarray:
+        """(n, 4, 4) T_world_lidar of every keyframe; NaN where unknown."""
+        return self._poses[: self._size].copy()
+
     def session_of(self, index: int) -> str:
         return self._sessions[self._session_index[self._check_index(index)]]
 

@@ -20,6 +20,7 @@ Keys (all plain arrays or JSON strings):
 
 from __future__ import annotations
 
+import hashlib
 import json
 import zipfile
 from dataclasses import dataclass, field
@@ -100,6 +101,17 @@ class VBRLModel:
 
     def featurizer(self) -> Featurizer:
         return Featurizer(self.config)
+
+    def identity(self) -> str:
+        """Content hash of everything that decides a descriptor's meaning and its score.
+
+        A keyframe database stores standardised descriptors; it is only valid
+        with the exact model that produced them, whatever its file name.
+        """
+        digest = hashlib.sha256(json.dumps(self.config.to_dict(), sort_keys=True).encode())
+        for name in _ARRAY_KEYS:
+            digest.update(np.ascontiguousarray(getattr(self, name), dtype=np.float64).tobytes())
+        return digest.hexdigest()[:16]
 
     # -- file I/O -----------------------------------------------------------
 
