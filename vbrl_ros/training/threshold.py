@@ -1,63 +1,65 @@
 """A model's recommended acceptance threshold, from its own training keyframes.
 
-The online node accepts a candidate when its Eq. 4 distance is below a
-threshold. Distances have no universal scale (they depend on the learned
-weights and the standardisation), so each model carries the threshold that
-maximised F1 when its training keyframes of one scenario were queried
-against those of every other scenario (ground truth from positions, radius
-R) — the cross-session situation the threshold matters most in.
+Eq. 4 distances have no universal scale (they depend on the learned weights
+and the standardisation), so every model carries the distance threshold
+that maximised F1 on its training keyframes; the online node uses it unless
+told otherwise. Accept a candidate when ``distance <= threshold``.
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
-from vbrl_ros.evaluation.metrics import pr_curve
+from vbrl_ros.evaluation.methods import weighted_l1_top_k
+from vbrl_ros.evaluation.metrics import evaluate_retrieval, pr_curve
 from vbrl_ros.model import VBRLModel
+from vbrl_ros.training.cv import _protocol_pairs
 
 
-def recommended_threshold(
-    model: VBRLModel,
-    descriptors: np.ndarray,
-    labels: np.ndarray,
-    positions: np.ndarray,
-    radius: float = 3.0,
-    exclude: int = 10,
-) -> float:
-    """Distance threshold (accept ``distance < threshold``) at max F1 over scenario pairs.
+def recommend_threshold(model: VBRLModel, descriptors: np.ndarray, labels: np.ndarray,
+                        positions: np.ndarray, source_of_row: np.ndarray,
+                        keyframe_index: np.ndarray, radius: float = 3.0,
+                        exclude: int = 50, protocols: tuple[str, ...] = ("P1", "P2"),
+                        ) -> dict[str, Any] | None:
+    """Max-F1 acceptance threshold of ``model`` on its training keyframes.
 
-    With a single scenario there is no pair; the scenario is then queried
-    against itself without the ``exclude`` keyframes either side of the
-    query, a stand-in for the online recency exclusion.
+    P1 within each source (the online node's situation: one growing session,
+    the last ``exclude`` scans excluded), top-1 distances and correctness
+    pooled over sources; if no source revisits a place, P2 between scenarios.
+    ``protocols`` sets the order tried. None without poses or revisits.
+    Training keyframes make it optimistic;
+    it is a starting default, to be checked with ``vbrl eval`` on other data.
     """
+    known = np.isfinite(positions).all(axis=1)
+    if not known.any():
+        return None
+    rows = np.flatnonzero(known)
+    d, lab, pos = descriptors[rows], np.asarray(labels)[rows], positions[rows]
+    src, ki = source_of_row[rows], keyframe_index[rows]
     scorer = model.scorer()
-    compact = scorer.compact(model.standardize(descriptors))
-    labels = np.asarray(labels)
-    positions = np.asarray(positions, dtype=np.float64)
-    scenarios = np.unique(labels)
-    top1_distance, top1_correct, revisits = [], [], 0
-    for a in scenarios:
-        others = [b for b in scenarios if b != a] or [a]
-        for b in others:
-            database = np.flatnonzero(labels == b)
-            for rank, q in enumerate(np.flatnonzero(labels == a)):
-                visible = np.ones(len(database), dtype=bool)
-                if a == b:
-                    visible[max(0, rank - exclude): rank + exclude + 1] = False
-                candidates = database[visible]
-                if len(candidates) == 0:
-                    continue
-                distances = scorer.distances_compact(compact[q], compact[candidates])
-                metres = np.linalg.norm(positions[candidates] - positions[q], axis=1)
-                best = int(np.argmin(distances))
-                revisits += bool((metres < radius).any())
-                top1_distance.append(float(distances[best]))
-                top1_correct.append(bool(metres[best] < radius))
-    distances = np.array(top1_distance)
-    curve = pr_curve(distances, np.array(top1_correct), revisits)
-    if len(curve.f1) == 0 or not np.nanmax(curve.f1) > 0:
-        return float(np.median(distances)) if len(distances) else 1.0
-    accepted = curve.thresholds[int(np.nanargmax(curve.f1))]
-    # pr_curve thresholds mean "accept <=": put ours halfway to the next larger distance
-    larger = distances[distances > accepted]
-    return float((accepted + larger.min()) / 2 if len(larger) else accepted * 1.01)
+    X = scorer.compact(model.standardize(d))
+    for protocol in protocols:
+        dists, correct, revisits = [], [], 0
+        pairs = (_protocol_pairs(np.zeros(len(rows), int), ki, src, exclude) if protocol == "P1"
+                 else _protocol_pairs(lab, ki, src, exclude) if len(np.unique(lab)) >= 2 else ())
+        for q_rows, db_rows, limits in pairs:
+            idx, dist = weighted_l1_top_k(X[q_rows], X[db_rows], scorer.active_weights, 1, limits)
+            m = evaluate_retrieval(pos[q_rows], pos[db_rows], idx, dist, radius, limits)
+            revisits += m.num_revisits
+            ok = np.isfinite(dist[:, 0])
+            hit = np.zeros(len(q_rows), bool)
+            j = idx[ok, 0]
+            hit[ok] = np.linalg.norm(pos[db_rows][j] - pos[q_rows][ok], axis=1) < radius
+            dists.append(dist[:, 0]), correct.append(hit)
+        if revisits == 0:
+            continue
+        curve = pr_curve(np.concatenate(dists), np.concatenate(correct), revisits)
+        if len(curve.f1) == 0 or np.nanmax(curve.f1) <= 0:
+            continue
+        best = int(np.nanargmax(curve.f1))
+        return {"distance_threshold": float(curve.thresholds[best]), "protocol": protocol,
+                "max_f1": float(curve.f1[best]), "precision": float(curve.precision[best]),
+                "recall": float(curve.recall[best]), "revisits": int(revisits), "radius": radius}
+    return None

@@ -1,0 +1,265 @@
+"""``vbrl train SOURCE... --out MODEL.npz``: learn W from bags or KITTI-style folders.
+
+Besides MODEL.npz it writes, next to it (see :mod:`.ablations`):
+
+- the paper's ablations MODEL.concatenation/voxel-only/modality-only.npz
+  (same data; ``--no-ablations`` skips them);
+- MODEL.modalities.png, MODEL.voxels.png, MODEL.layers.png (:mod:`.plots`);
+- with ``--cv K``, MODEL.cv.png: held-out Recall@1 over the λ grid (:mod:`.cv`).
+
+``model.metadata["distance_threshold"]`` is the max-F1 acceptance threshold
+on the training keyframes (lower distance = more similar; :func:`.threshold.recommend_threshold`).
+With ``--stream`` (automatic when n·d·4 bytes exceed ``--max-memory-gb``) the
+descriptors are never held: :mod:`.streaming`.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vbrl_ros.config import VBRLConfig
+from vbrl_ros.datasets import open_source
+from vbrl_ros.features import Featurizer
+from vbrl_ros.training import cv as cv_module
+from vbrl_ros.training.ablations import ABLATIONS, ablation_lambdas, ablation_path, sibling_path
+from vbrl_ros.training.fit import TrainingResult, fit_model
+from vbrl_ros.training.keyframes import featurize, select_keyframes, source_points
+from vbrl_ros.training import streaming
+from vbrl_ros.training.report import importance_report
+from vbrl_ros.training.threshold import recommend_threshold
+
+
+@dataclass
+class TrainingData:
+    """Raw descriptors of the keyframes of several sources, with their scenario labels."""
+
+    descriptors: np.ndarray  # (n, d) float32
+    labels: np.ndarray  # (n,) scenario index
+    scenario_names: list[str]
+    positions: np.ndarray  # (n, 3), NaN where unknown
+    source_of_row: np.ndarray  # (n,) index into the sources
+    keyframe_index: np.ndarray  # (n,) scan index inside its source
+
+
+def add_source_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options shared by every command that reads scan sources."""
+    parser.add_argument("--topic", help="PointCloud2 topic in bags (default: the only one)")
+    parser.add_argument(
+        "--poses", default="auto",
+        help="where poses come from: auto | none | kiss-icp | odom:/topic | pose:/topic | "
+             "tf:parent:child | file:poses.txt (default: auto = the data's own)",
+    )
+    parser.add_argument("--workers", type=int, default=None,
+                        help="featurization processes (default: one per CPU)")
+
+
+def source_labels(paths: list[Path], labels: list[str] | None) -> list[str]:
+    """Scenario label of each source: ``labels`` or the file/folder name."""
+    if labels is not None and len(labels) != len(paths):
+        raise ValueError(f"--labels needs one label per source ({len(paths)}), got {len(labels)}")
+    return labels or [Path(p).stem if Path(p).is_file() else Path(p).name for p in paths]
+
+
+def load_training_data(
+    paths: list[Path],
+    config: VBRLConfig,
+    *,
+    labels: list[str] | None,
+    topic: str | None,
+    poses: str,
+    keyframe_distance: float | None,
+    every: int | None,
+    workers: int | None,
+    progress: bool = True,
+) -> TrainingData:
+    names = source_labels(paths, labels)
+    scenario_names = list(dict.fromkeys(names))  # sources with the same label share a scenario
+    rows, label_rows, positions, source_rows, index_rows = [], [], [], [], []
+    for k, (path, name) in enumerate(zip(paths, names)):
+        with open_source(path, topic=topic, poses=poses, progress=progress) as source:
+            indices = select_keyframes(source, distance=keyframe_distance, every=every)
+            descriptors = featurize(
+                source_points(source, indices), config, total=len(indices), workers=workers,
+                progress=progress, description=f"featurizing {source.name}",
+            )
+            rows.append(descriptors)
+            label_rows.append(np.full(len(indices), scenario_names.index(name)))
+            source_rows.append(np.full(len(indices), k))
+            index_rows.append(indices)
+            if source.poses is None:
+                positions.append(np.full((len(indices), 3), np.nan))
+            else:
+                positions.append(source.poses[indices, :3, 3])
+    return TrainingData(
+        descriptors=np.concatenate(rows),
+        labels=np.concatenate(label_rows),
+        scenario_names=scenario_names,
+        positions=np.concatenate(positions),
+        source_of_row=np.concatenate(source_rows),
+        keyframe_index=np.concatenate(index_rows),
+    )
+
+
+def _float_list(text: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+    if not values or any(v < 0 or v != v for v in values):
+        raise argparse.ArgumentTypeError(f"expected non-negative numbers, got {text!r}")
+    return values
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "train", help="learn the VBRL weight matrix W from recordings",
+        description="Featurize keyframes of each SOURCE (bag or KITTI-style folder), build the "
+                    "scenario matrix Y (each SOURCE is one scenario unless --labels says "
+                    "otherwise), solve the structured-sparsity objective and write a model file, "
+                    "its three ablations and figures of what it learned next to it.",
+    )
+    parser.add_argument("sources", nargs="+", type=Path, metavar="SOURCE")
+    parser.add_argument("--out", type=Path, required=True, metavar="MODEL.npz")
+    parser.add_argument("--labels", help="comma-separated scenario label per SOURCE")
+    parser.add_argument("--lambda1", type=float, default=10.0, help="voxel group norm weight (10)")
+    parser.add_argument("--lambda2", type=float, default=0.1,
+                        help="modality group + row norm weight (0.1)")
+    selection = parser.add_mutually_exclusive_group()
+    selection.add_argument("--keyframe-distance", type=float, metavar="M",
+                           help="one keyframe every M metres of travel (needs poses)")
+    selection.add_argument("--every", type=int, metavar="N", help="one keyframe every N scans")
+    add_source_arguments(parser)
+    parser.add_argument("--ablations", action=argparse.BooleanOptionalAction, default=True,
+                        help="also write MODEL.concatenation/voxel-only/modality-only.npz (default: on)")
+    cv = parser.add_argument_group("cross-validation of (λ1, λ2)")
+    cv.add_argument("--cv", type=int, metavar="K",
+                    help="choose (λ1, λ2) by K-fold place-disjoint cross-validation (overrides "
+                         "--lambda1/--lambda2; needs poses in one world frame)")
+    cv.add_argument("--lambda1-grid", type=_float_list, default=cv_module.DEFAULT_LAMBDA1_GRID,
+                    metavar="A,B,...", help="λ1 values to try (0,1,10,100)")
+    cv.add_argument("--lambda2-grid", type=_float_list, default=cv_module.DEFAULT_LAMBDA2_GRID,
+                    metavar="A,B,...", help="λ2 values to try (0,0.01,0.1,1)")
+    cv.add_argument("--radius", type=float, default=3.0,
+                    help="revisit radius in metres for cross-validation and the threshold (3)")
+    cv.add_argument("--exclude", type=int, default=50,
+                    help="P1: scans excluded before each query, for the threshold (50)")
+    memory = parser.add_argument_group("memory")
+    memory.add_argument("--stream", action="store_true",
+                        help="never hold the descriptors: accumulate Gram statistics in one pass")
+    memory.add_argument("--max-memory-gb", type=float, default=4.0,
+                        help="stream automatically when n·d·4 bytes exceed this (4)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.set_defaults(func=run)
+
+
+def _should_stream(args: argparse.Namespace, d: int) -> tuple[bool, int | None]:
+    """(stream?, keyframe count if it was counted)."""
+    if args.stream:
+        return True, None
+    if args.poses == "kiss-icp" and args.keyframe_distance is not None:
+        return False, None  # counting would run KISS-ICP twice; assume it fits
+    # Counting with poses only when keyframes depend on them (reading poses can be slow).
+    poses = args.poses if args.keyframe_distance is not None else "none"
+    n = streaming.count_keyframes(args.sources, topic=args.topic, poses=poses,
+                                  keyframe_distance=args.keyframe_distance, every=args.every)
+    return n * d * 4 > args.max_memory_gb * 1e9, n
+
+
+def _summary(result: TrainingResult) -> str:
+    return (f"solver {result.solver.path}, {result.solver.iterations} iterations, "
+            f"{result.seconds:.1f} s")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.lambda1 < 0 or args.lambda2 < 0:
+        raise ValueError("--lambda1 and --lambda2 must be >= 0")
+    if args.max_memory_gb <= 0:
+        raise ValueError("--max-memory-gb must be positive")
+    config = VBRLConfig()
+    d = Featurizer(config).dimension
+    names = source_labels(args.sources, args.labels.split(",") if args.labels else None)
+    stream, counted = _should_stream(args, d)
+    base_meta = {"sources": [str(p) for p in args.sources], "labels": names}
+    lambda1, lambda2 = args.lambda1, args.lambda2
+    if stream:
+        if args.cv:
+            raise ValueError("--cv needs the training descriptors in memory; run it on a subset "
+                             "without --stream (or raise --max-memory-gb), then train with "
+                             "--stream --lambda1/--lambda2 set to the chosen pair")
+        if counted is not None:
+            print(f"{counted} keyframes x {d} features = {counted * d * 4 / 1e9:.1f} GB > "
+                  f"--max-memory-gb {args.max_memory_gb:g}: streaming into the Gram matrix")
+        moments, info = streaming.stream_moments(
+            args.sources, names, config, topic=args.topic, poses=args.poses,
+            keyframe_distance=args.keyframe_distance, every=args.every, workers=args.workers,
+            progress=not args.quiet,
+        )
+        standardized = moments.standardized()
+        scenario_names = info.scenario_names
+
+        def fit(l1: float, l2: float, meta: dict) -> TrainingResult:
+            return streaming.fit_from_moments(moments, scenario_names, config, l1, l2,
+                                              metadata=meta, standardized=standardized)
+        n_keyframes = moments.n
+    else:
+        data = load_training_data(
+            args.sources, config, labels=names, topic=args.topic, poses=args.poses,
+            keyframe_distance=args.keyframe_distance, every=args.every,
+            workers=args.workers, progress=not args.quiet,
+        )
+        scenario_names = data.scenario_names
+        n_keyframes = len(data.descriptors)
+        if args.cv:
+            result_cv = cv_module.cross_validate(
+                data.descriptors, data.labels, data.scenario_names, data.positions,
+                data.source_of_row, data.keyframe_index, config, folds=args.cv,
+                lambda1_grid=args.lambda1_grid, lambda2_grid=args.lambda2_grid,
+                radius=args.radius, exclude=args.exclude, progress=not args.quiet,
+            )
+            print(cv_module.format_cv_table(result_cv))
+            lambda1, lambda2 = result_cv.best
+            base_meta["cv"] = result_cv.metadata()
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            print(f"cross-validation heat map: {cv_module.plot_cv(result_cv, sibling_path(args.out, 'cv.png'))}")
+
+        def fit(l1: float, l2: float, meta: dict) -> TrainingResult:
+            return fit_model(data.descriptors, data.labels, data.scenario_names, config,
+                             lambda1=l1, lambda2=l2, metadata=meta)
+
+    result = fit(lambda1, lambda2, dict(base_meta))
+    model = result.model
+    if stream:
+        print("distance_threshold: not computed with --stream (it needs the descriptors); "
+              "measure one with vbrl eval")
+    else:
+        threshold = recommend_threshold(
+            model, data.descriptors, data.labels, data.positions, data.source_of_row,
+            data.keyframe_index, radius=args.radius, exclude=args.exclude)
+        if threshold is None:
+            print("distance_threshold: not computed (no poses or no revisits in the training data)")
+        else:
+            model.metadata["distance_threshold"] = threshold.pop("distance_threshold")
+            model.metadata["distance_threshold_info"] = threshold
+            print(f"recommended acceptance threshold (max F1 {threshold['max_f1']:.3f}, "
+                  f"{threshold['protocol']} on the training keyframes, {threshold['radius']:g} m): "
+                  f"distance <= {model.metadata['distance_threshold']:.6g}")
+    path = model.save(args.out)
+    print(f"trained on {n_keyframes} keyframes from {len(args.sources)} source(s), "
+          f"{len(scenario_names)} scenario(s), λ1 = {lambda1:g}, λ2 = {lambda2:g}: {_summary(result)}")
+    print(importance_report(model))
+    from vbrl_ros.training.plots import save_importance_plots  # matplotlib: only when needed
+
+    for kind, png in save_importance_plots(model, path).items():
+        print(f"{kind} figure: {png}")
+    print(f"model written to {path}")
+    if args.ablations:
+        for name in ABLATIONS:
+            l1, l2 = ablation_lambdas(name, lambda1, lambda2)
+            ablation = fit(l1, l2, {**base_meta, "ablation": name, "full_model": path.name})
+            out = ablation.model.save(ablation_path(path, name))
+            print(f"ablation {name:<14s} (λ1 = {l1:g}, λ2 = {l2:g}): {_summary(ablation)} -> {out}")
+    return 0
