@@ -1,0 +1,152 @@
+"""``vbrl eval`` end to end: P1 and P2, five methods, JSON + PNG + matches dump, poses unused."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vbrl_ros import cli
+from vbrl_ros.config import VBRLConfig, VoxelGridConfig
+from vbrl_ros.evaluation import evaluate_matches_file
+from vbrl_ros.model import load_model
+from vbrl_ros.training.ablations import ablation_path
+
+sim = pytest.importorskip("vbrl_ros.simulator")
+METHODS = ["VBRL", "concatenation", "voxel-only", "modality-only", "Scan Context"]
+METRICS = ("max_f1", "average_precision", "recall_at_100_precision", "recall_at_1", "recall_at_5",
+           "num_queries", "num_revisits")
+
+
+def vbrl(monkeypatch: pytest.MonkeyPatch, *argv) -> int:
+    monkeypatch.setattr(cli, "SUBCOMMANDS", ("vbrl_ros.training.cli", "vbrl_ros.evaluation.cli"))
+    return cli.main([str(a) for a in argv])
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> tuple[list[Path], Path]:
+    """Two simulated scenarios (~60 scans each) and a model + ablations trained on them."""
+    from vbrl_ros.datasets.kitti_style import write_kitti_style
+
+    folder = tmp_path_factory.mktemp("eval")
+    town = sim.generate_town(sim.TownConfig(blocks_x=2, blocks_y=2), seed=0)
+    route = sim.make_route(town, sim.RouteConfig(loops=2, spacing_m=10.0))
+    lidar = sim.LidarConfig(beams=16, columns=360)
+    sources = []
+    for seed, name in enumerate(("summer_clear", "winter_snow"), start=1):
+        run = sim.simulate_run(town, route, lidar, name, seed=seed)
+        sources.append(Path(write_kitti_style(folder / name, run.point_clouds(progress=False),
+                                              run.poses, run.stamps)))
+    model = folder / "model.npz"
+    with pytest.MonkeyPatch.context() as mp:
+        assert vbrl(mp, "train", *sources, "--out", model, "--quiet", "--workers", "1") == 0
+    return sources, model
+
+
+def _read(path: Path) -> dict:
+    return json.loads(path.read_text())
+
+
+def _as_json(summary: dict) -> dict:
+    """What the JSON holds: undefined (NaN/inf) metrics are null."""
+    return {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in summary.items()}
+
+
+def _positions(folder: Path) -> np.ndarray:
+    return np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)[:, :, 3]
+
+
+def test_p1_all_methods_json_png_and_matches(trained, tmp_path, monkeypatch):
+    (summer, _), model = trained
+    out = tmp_path / "p1.json"
+    dump = tmp_path / "p1.matches.json"
+    assert vbrl(monkeypatch, "eval", summer, "--model", model, "--json", out, "--dump-matches", dump,
+                "--exclude", "20", "--quiet", "--workers", "1") == 0
+    report = _read(out)
+    assert report["protocol"] == "P1" and report["methods"] == METHODS
+    for name in METHODS:
+        for radius in ("3", "5"):
+            assert set(METRICS) <= set(report["metrics"][name][radius])
+    assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
+    entries = _read(dump)
+    assert {"query", "match", "distance"} <= set(entries[0])
+    # the dump recomputes the JSON's metrics exactly
+    for radius in (3.0, 5.0):
+        again = _as_json(evaluate_matches_file(dump, _positions(summer), radius=radius,
+                                               exclude=20).summary())
+        assert again == pytest.approx(report["metrics"]["VBRL"][f"{radius:g}"], nan_ok=True)
+
+
+def test_p2_with_alignment(trained, tmp_path, monkeypatch):
+    (summer, winter), model = trained
+    align = tmp_path / "T.txt"
+    np.savetxt(align, np.eye(4))
+    out, dump = tmp_path / "p2.json", tmp_path / "p2.matches.json"
+    plot = tmp_path / "curves.png"
+    assert vbrl(monkeypatch, "eval", winter, "--against", summer, "--model", model, "--align", align,
+                "--json", out, "--plot", plot, "--dump-matches", dump, "--quiet", "--workers", "1") == 0
+    report = _read(out)
+    assert report["protocol"] == "P2" and report["methods"] == METHODS and plot.is_file()
+    assert report["metrics"]["VBRL"]["3"]["num_revisits"] > 0
+    again = _as_json(evaluate_matches_file(dump, _positions(winter), radius=3.0,
+                                           database_positions=_positions(summer)).summary())
+    assert again == pytest.approx(report["metrics"]["VBRL"]["3"], nan_ok=True)
+
+
+def test_matching_never_uses_poses(trained, tmp_path, monkeypatch):
+    (summer, _), model = trained
+    zeroed = tmp_path / "zeroed"
+    zeroed.mkdir()
+    (zeroed / "velodyne").symlink_to(summer / "velodyne")
+    shutil.copy(summer / "times.txt", zeroed / "times.txt")
+    n = len(_positions(summer))
+    np.savetxt(zeroed / "poses.txt", np.tile([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], (n, 1)))
+    dumps = []
+    for k, folder in enumerate((summer, zeroed)):
+        dumps.append(tmp_path / f"m{k}.json")
+        assert vbrl(monkeypatch, "eval", folder, "--model", model, "--dump-matches", dumps[-1],
+                    "--exclude", "20", "--no-ablations", "--no-scan-context", "--quiet",
+                    "--workers", "1", "--out-dir", tmp_path) == 0
+    assert _read(dumps[0]) == _read(dumps[1])
+
+
+def test_missing_ablation_is_skipped_with_a_note(trained, tmp_path, monkeypatch, capsys):
+    (summer, _), model = trained
+    lone = tmp_path / "lone.npz"
+    shutil.copy(model, lone)
+    shutil.copy(ablation_path(model, "voxel-only"), ablation_path(lone, "voxel-only"))
+    assert vbrl(monkeypatch, "eval", summer, "--model", lone, "--json", tmp_path / "r.json",
+                "--exclude", "20", "--quiet", "--workers", "1", "--no-scan-context") == 0
+    report = _read(tmp_path / "r.json")
+    assert report["methods"] == ["VBRL", "voxel-only"]
+    assert "skipped" in capsys.readouterr().out
+
+
+def test_bad_inputs_exit_2_with_one_line(trained, tmp_path, monkeypatch, capsys):
+    (summer, winter), model = trained
+    base = ["--quiet", "--workers", "1"]
+    assert vbrl(monkeypatch, "eval", summer, "--model", tmp_path / "missing.npz", *base) == 2
+    # an ablation of another configuration cannot share the descriptors
+    other = tmp_path / "other.npz"
+    shutil.copy(model, other)
+    m = load_model(model)
+    m.config = VBRLConfig(grid=VoxelGridConfig(cells_xy=4))
+    m.W = np.zeros((m.config.grid.n_voxels * 41, 2))
+    d = len(m.W)
+    from vbrl_ros.model import VBRLModel
+
+    VBRLModel(config=m.config, W=m.W, feature_mean=np.zeros(d), feature_scale=np.ones(d),
+              lambda1=0, lambda2=0, scenarios=m.scenarios).save(ablation_path(other, "concatenation"))
+    assert vbrl(monkeypatch, "eval", summer, "--model", other, *base) == 2
+    bad = tmp_path / "T.txt"
+    np.savetxt(bad, np.eye(3))
+    assert vbrl(monkeypatch, "eval", winter, "--against", summer, "--model", model, "--align", bad,
+                *base) == 2
+    assert vbrl(monkeypatch, "eval", summer, "--model", model, "--align", bad, *base) == 2
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert len(errors) == 4
+    assert "missing.npz" in errors[0] and "another configuration" in errors[1]
+    assert "4x4" in errors[2] and "--against" in errors[3]

@@ -1,0 +1,229 @@
+"""``vbrl eval``: full VBRL, its three ablations and Scan Context, side by side (DESIGN.md §3).
+
+- one source: P1, online loop closure (query i against keyframes 0..i−E);
+- ``--against DB``: P2, queries from the first source, database from DB;
+  ``--align T.txt`` (4×4, query world frame -> database world frame) is used
+  for the ground truth only.
+
+Each source is read and described once (VBRL raw descriptor + Scan Context);
+every VBRL variant re-uses the raw descriptors with its own standardisation
+and weights. Matching never sees a pose: poses are the ground truth only.
+Indices (JSON dump) are keyframe ordinals in source order; with the default
+keyframe selection (every scan) they are the scan indices, otherwise each
+entry also carries ``query_scan`` / ``match_scan``. Distances: lower = more similar.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vbrl_ros.evaluation.matches_json import matches_to_json
+from vbrl_ros.evaluation.metrics import RetrievalMetrics, evaluate_cross_session, evaluate_online
+from vbrl_ros.evaluation.retrieval import RetrievalResults, cross_session_retrieval, online_retrieval
+from vbrl_ros.io.atomic import atomic_write
+from vbrl_ros.model import VBRLModel, load_model
+from vbrl_ros.training.ablations import FULL_NAME, discover_ablations
+from vbrl_ros.training.cli import add_source_arguments
+
+TOP_K = 5  # Recall@5
+REPORT_RADII = (3.0, 5.0)  # DESIGN.md §3: report 3 m and 5 m
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "eval", help="evaluate a model, its ablations and Scan Context (P1 / P2)",
+        description="P1 (one SOURCE: online loop closure) or P2 (--against: cross-session) for the "
+                    "full VBRL model, its ablations found next to it (MODEL.<ablation>.npz) and "
+                    "Scan Context. Prints a table, writes JSON metrics, a PR-curve PNG and "
+                    "optionally the per-query matches.",
+    )
+    parser.add_argument("query", type=Path, metavar="QUERY_SOURCE")
+    parser.add_argument("--against", type=Path, metavar="DATABASE_SOURCE",
+                        help="P2: database session (queries come from QUERY_SOURCE)")
+    parser.add_argument("--model", type=Path, required=True, metavar="MODEL.npz")
+    parser.add_argument("--align", type=Path, metavar="T.txt",
+                        help="P2: 4x4 transform, query world frame -> database world frame "
+                             "(ground truth only)")
+    parser.add_argument("--exclude", type=int, default=50,
+                        help="P1: keyframes excluded before each query (50; = scans by default)")
+    parser.add_argument("--radius", type=float, default=3.0,
+                        help="revisit radius, metres (3); 5 m is always reported too")
+    selection = parser.add_mutually_exclusive_group()
+    selection.add_argument("--keyframe-distance", type=float, metavar="M",
+                           help="one keyframe every M metres of travel (needs poses)")
+    selection.add_argument("--every", type=int, metavar="N", help="one keyframe every N scans")
+    add_source_arguments(parser)
+    parser.add_argument("--json", type=Path, metavar="FILE", help="write the metrics as JSON")
+    parser.add_argument("--plot", type=Path, metavar="FILE",
+                        help="PR-curve PNG (default: next to --json, else OUT_DIR/pr.png)")
+    parser.add_argument("--out-dir", type=Path, default=Path("."), help="for the default plot (.)")
+    parser.add_argument("--dump-matches", type=Path, metavar="FILE",
+                        help="per-query top matches of the full VBRL model as JSON")
+    parser.add_argument("--ablations", action=argparse.BooleanOptionalAction, default=True,
+                        help="also evaluate MODEL.<ablation>.npz found next to the model (on)")
+    parser.add_argument("--scan-context", action=argparse.BooleanOptionalAction, default=True,
+                        help="also evaluate the Scan Context baseline (on)")
+    parser.add_argument("--sc-lidar-height", type=float, default=2.0,
+                        help="Scan Context: sensor height above ground, m (2.0)")
+    parser.add_argument("--sc-max-range", type=float, default=80.0, help="Scan Context range, m (80)")
+    parser.add_argument("--sc-candidates", type=int, default=10,
+                        help="Scan Context: ring-key prefilter candidates (10)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.set_defaults(func=run)
+
+
+def load_alignment(path: Path) -> np.ndarray:
+    """A 4×4 homogeneous transform from a text file (16 numbers, 4 rows)."""
+    try:
+        T = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError as error:
+        raise ValueError(f"--align {path}: not a numeric matrix ({' '.join(str(error).split())})") from None
+    if T.shape != (4, 4):
+        raise ValueError(f"--align {path}: expected a 4x4 matrix, got shape {T.shape[0]}x{T.shape[1]}")
+    if not np.isfinite(T).all() or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise ValueError(f"--align {path}: must be finite with last row 0 0 0 1")
+    return T
+
+
+def load_models(path: Path, with_ablations: bool) -> tuple[dict[str, VBRLModel], list[str]]:
+    """The full model and its sibling ablations (same configuration required); notes on skips."""
+    model = load_model(path)
+    models, notes = {FULL_NAME: model}, []
+    if with_ablations:
+        found, missing = discover_ablations(path)
+        for name, sibling in found.items():
+            # Featurized once with the full model's configuration: a sibling of another
+            # configuration cannot share the descriptors (stale file from another run?).
+            models[name] = load_model(sibling, expected_config=model.config)
+        notes += [f"ablation {name} skipped: no file next to the model" for name in missing]
+    return models, notes
+
+
+def _clean(value: Any) -> Any:
+    """JSON has no NaN/inf: undefined metrics become null."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_clean(v) for v in value]
+    return value
+
+
+def _fmt(x: float | None, width: int = 7) -> str:
+    return f"{'-':>{width}s}" if x is None or not math.isfinite(x) else f"{x:{width}.3f}"
+
+
+def format_table(metrics: dict[str, dict[float, RetrievalMetrics]], radii: list[float]) -> str:
+    lines = []
+    for r in radii:
+        lines.append(f"radius {r:g} m")
+        lines.append(f"  {'method':<15s} {'R@1':>7s} {'R@5':>7s} {'maxF1':>7s} {'AP':>7s} "
+                     f"{'R@100P':>7s} {'revisits':>9s} {'queries':>8s}")
+        for name, by_radius in metrics.items():
+            m = by_radius[r]
+            lines.append(f"  {name:<15s} {_fmt(m.recall_at_1)} {_fmt(m.recall_at_5)} {_fmt(m.max_f1)} "
+                         f"{_fmt(m.average_precision)} {_fmt(m.recall_at_100_precision)} "
+                         f"{m.num_revisits:>9d} {m.num_queries:>8d}")
+    return "\n".join(lines)
+
+
+def write_matches(path: Path, results: RetrievalResults, query_scans: np.ndarray,
+                  database_scans: np.ndarray) -> Path:
+    entries = matches_to_json(results, include_top_k=True)
+    if not (np.array_equal(query_scans, np.arange(len(query_scans)))
+            and np.array_equal(database_scans, np.arange(len(database_scans)))):
+        for e in entries:  # keyframe ordinals differ from scan indices: say both
+            e["query_scan"] = int(query_scans[e["query"]])
+            e["match_scan"] = int(database_scans[e["match"]]) if e["match"] >= 0 else -1
+    text = json.dumps(entries, indent=1, allow_nan=False)
+    return atomic_write(path, lambda handle: handle.write(text.encode()))
+
+
+def run(args: argparse.Namespace) -> int:
+    from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod, describe_source
+    from vbrl_ros.scan_context import ScanContextConfig
+
+    if not (math.isfinite(args.radius) and args.radius > 0):
+        raise ValueError("--radius must be a positive number of metres")
+    if args.exclude < 1:
+        raise ValueError("--exclude must be >= 1 (a scan must not match itself)")
+    if args.align is not None and args.against is None:
+        raise ValueError("--align only applies to P2 (--against)")
+    alignment = load_alignment(args.align) if args.align is not None else None
+    models, notes = load_models(args.model, args.ablations)
+    config = models[FULL_NAME].config
+    sc_config = ScanContextConfig(max_range=args.sc_max_range, lidar_height=args.sc_lidar_height)
+    options = dict(topic=args.topic, poses=args.poses, keyframe_distance=args.keyframe_distance,
+                   every=args.every, workers=args.workers, progress=not args.quiet)
+    queries = describe_source(args.query, config, sc_config, **options)
+    database = queries if args.against is None else describe_source(args.against, config, sc_config,
+                                                                     **options)
+    for source in {id(queries): queries, id(database): database}.values():
+        if source.positions is None or not np.isfinite(source.positions).all():
+            raise ValueError(f"{source.name}: every keyframe needs a pose for the ground truth "
+                             "(--poses kiss-icp or file:poses.txt); matching itself never uses them")
+    methods: list[Any] = [VBRLMethod(name, m) for name, m in models.items()]
+    if args.scan_context:
+        methods.append(ScanContextMethod(sc_config, args.sc_candidates))
+    radii = sorted({float(args.radius), *REPORT_RADII})
+    protocol = "P1" if args.against is None else "P2"
+
+    metrics: dict[str, dict[float, RetrievalMetrics]] = {}
+    full_results: RetrievalResults | None = None
+    for method in methods:
+        fn = method.distances_fn(queries, database)
+        if protocol == "P1":
+            results = online_retrieval(len(queries), args.exclude, TOP_K, fn, progress=not args.quiet)
+            metrics[method.name] = {r: evaluate_online(queries.positions, results.indices,
+                                                       results.distances, r, args.exclude)
+                                    for r in radii}
+        else:
+            results = cross_session_retrieval(len(queries), len(database), TOP_K, fn,
+                                              progress=not args.quiet)
+            metrics[method.name] = {r: evaluate_cross_session(queries.positions, database.positions,
+                                                              results.indices, results.distances, r,
+                                                              alignment)
+                                    for r in radii}
+        if method.name == FULL_NAME:
+            full_results = results
+
+    for note in notes:
+        print(f"note: {note}")
+    title = (f"P1 {queries.name} (exclude {args.exclude})" if protocol == "P1"
+             else f"P2 {queries.name} -> {database.name}")
+    print(f"{title}: {len(queries)} query keyframes, {len(database)} database keyframes")
+    print(format_table(metrics, radii))
+
+    if args.json is not None:
+        report = {
+            "protocol": protocol, "query_source": str(args.query),
+            "database_source": None if args.against is None else str(args.against),
+            "model": str(args.model), "radius": float(args.radius), "radii": radii,
+            "exclude": args.exclude if protocol == "P1" else None,
+            "align": None if alignment is None else alignment.tolist(),
+            "num_query_keyframes": len(queries), "num_database_keyframes": len(database),
+            "methods": list(metrics), "notes": notes,
+            "metrics": {name: {f"{r:g}": m.summary() for r, m in by_r.items()}
+                        for name, by_r in metrics.items()},
+        }
+        text = json.dumps(_clean(report), indent=2, allow_nan=False)
+        print(f"metrics written to {atomic_write(args.json, lambda h: h.write(text.encode()))}")
+    plot = args.plot or (args.json.with_suffix(".png") if args.json else args.out_dir / "pr.png")
+    from vbrl_ros.evaluation.plots import plot_pr_curves  # matplotlib: only when plotting
+
+    plot.parent.mkdir(parents=True, exist_ok=True)
+    plot_pr_curves({name: by_r[float(args.radius)] for name, by_r in metrics.items()}, plot,
+                   title=f"{title}, {args.radius:g} m")
+    print(f"PR curves written to {plot}")
+    if args.dump_matches is not None and full_results is not None:
+        out = write_matches(args.dump_matches, full_results, queries.keyframe_index,
+                            database.keyframe_index)
+        print(f"matches of {FULL_NAME} written to {out}")
+    return 0
