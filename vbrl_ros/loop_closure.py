@@ -22,7 +22,7 @@ class DetectorConfig:
     """Policy of the detector; every value is validated (the node maps parameters onto it)."""
 
     session: str = "default"
-    distance_threshold: float = 0.5  # accept candidates with Eq. 4 distance below this
+    distance_threshold: float = 0.5  # accept candidates with Eq. 4 distance <= this
     exclude_recent_s: float = 30.0  # same-session keyframes younger than this are not candidates
     top_k: int = 3  # candidates scored (and at most verified) per keyframe
     max_closures: int = 1  # accepted closures published per keyframe
@@ -97,7 +97,7 @@ class LoopClosureDetector:
         closures: list[LoopClosure] = []
         rejected = 0
         for candidate in candidates:
-            if candidate.distance >= cfg.distance_threshold or len(closures) >= cfg.max_closures:
+            if candidate.distance > cfg.distance_threshold or len(closures) >= cfg.max_closures:
                 break  # sorted by distance: nothing further can pass
             closure = LoopClosure(
                 query_id=self.database.next_keyframe_id, match_id=candidate.keyframe_id,

@@ -24,7 +24,7 @@ class NodeSettings:
     session_id: int = -1  # -1: one more than the largest session in the database
     keyframe_distance: float = 1.0  # metres of travel between keyframes (with odometry)
     keyframe_interval: float = 1.0  # seconds between keyframes (without odometry)
-    distance_threshold: float = 0.0  # accept below this Eq. 4 distance; 0: the model's own
+    distance_threshold: float = 0.0  # accept distance <= this (Eq. 4); 0: the model's own
     exclude_recent_s: float = 30.0
     top_k: int = 3  # candidates per keyframe; also bounds the verifications
     max_closures: int = 1
