@@ -280,6 +280,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # SIGINT / SIGTERM: fall through to a clean shutdown
+    except Exception:
+        if rclpy.ok():
+            raise
+        # a signal shut the context down while the executor was mid-wait;
+        # rclpy then raises whatever that wait hit: still a clean shutdown
     finally:
         if node is not None:
             node.shutdown()
