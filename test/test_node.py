@@ -1,0 +1,148 @@
+"""vbrl_node as a real process over real DDS: start-up checks, bad input, load, services, signals."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from vbrl_ros.io.pointcloud2 import to_ros_msg  # noqa: E402
+from vbrl_ros.ros_testing import MessageCollector, isolated_ros_env, ros_context  # noqa: E402
+
+NODE = [sys.executable, "-m", "vbrl_ros.node"]
+
+
+def node_command(*params: str) -> list[str]:
+    return [*NODE, "--ros-args", *[arg for p in params for arg in ("-p", p)]]
+
+
+def test_help_lists_the_parameters():
+    result = subprocess.run([*NODE, "--help"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0
+    assert "keyframe_distance" in result.stdout and "database_path" in result.stdout
+
+
+@pytest.mark.parametrize(
+    "param, named",
+    [("keyframe_distance:=-1.0", "keyframe_distance"), ("top_k:=abc", "top_k"),
+     ("min_fitness:=2.0", "min_fitness"), ("model_path:=/nonexistent/model.npz", "does not exist")],
+)
+def test_a_bad_parameter_stops_the_start_naming_it(param, named):
+    env = isolated_ros_env()
+    result = subprocess.run(node_command(param), env=env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert "cannot start" in result.stderr and named in result.stderr
+
+
+def scan(stamp: float, seed: int) -> PointCloud2:
+    rng = np.random.default_rng(seed)
+    points = np.concatenate([rng.uniform(-30, 30, (20000, 2)), rng.uniform(-2, 4, (20000, 1)),
+                             rng.random((20000, 1))], axis=1).astype(np.float32)
+    return to_ros_msg(points, ["x", "y", "z", "intensity"], stamp=stamp, frame_id="lidar")
+
+
+def malformed(stamp: float) -> list[PointCloud2]:
+    no_z = to_ros_msg(np.zeros((10, 2), np.float32), ["x", "y"], stamp=stamp)
+    short = scan(stamp, 0)
+    short.data = bytes(short.data)[:100]
+    zero_step = scan(stamp, 0)
+    zero_step.point_step = 0
+    beyond = scan(stamp, 0)
+    beyond.fields = [PointField(name=n, offset=o, datatype=PointField.FLOAT32, count=1)
+                     for n, o in (("x", 0), ("y", 4), ("z", 400))]
+    empty = to_ros_msg(np.zeros((0, 3), np.float32), ["x", "y", "z"], stamp=stamp)
+    nan_only = to_ros_msg(np.full((50, 3), np.nan, np.float32), ["x", "y", "z"], stamp=stamp)
+    return [no_z, short, zero_step, beyond, empty, nan_only]
+
+
+def stats(collector: MessageCollector) -> dict[str, int]:
+    last = collector.messages["/diagnostics"][-1].status[0]
+    return {kv.key: float(kv.value) for kv in last.values}
+
+
+def latest(collector: MessageCollector) -> dict[str, int]:
+    """The node's current stats: drain what queued while the test was not spinning first."""
+    collector.spin_until(lambda: False, 1.0)  # > 3 diagnostics periods
+    return stats(collector)
+
+
+def settle(collector: MessageCollector, timeout: float = 60.0) -> dict[str, int]:
+    """Wait until the node's processed-keyframe count stops moving; return the last stats."""
+    previous = None
+    for _ in range(int(timeout)):
+        current = latest(collector)
+        if previous is not None and current["keyframes_processed"] == previous["keyframes_processed"]:
+            return current
+        previous = current
+    raise AssertionError("node never went idle")
+
+
+def call(collector: MessageCollector, service: str, timeout: float = 20.0) -> Trigger.Response:
+    """Call a Trigger service, spinning the collector's executor (a node lives in one executor)."""
+    client = collector.node.create_client(Trigger, service)
+    assert client.wait_for_service(timeout_sec=timeout)
+    future = client.call_async(Trigger.Request())
+    assert collector.spin_until(future.done, timeout)
+    return future.result()
+
+
+def test_bad_input_load_services_and_sigterm(tmp_path: Path):
+    database = tmp_path / "db" / "keyframes.npz"
+    with ros_context() as context:
+        env = isolated_ros_env(context.get_domain_id())
+        probe = rclpy.create_node("probe", context=context)
+        collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
+        publisher = probe.create_publisher(PointCloud2, "/points", 100)
+        node = subprocess.Popen(
+            node_command(f"database_path:={database}", "keyframe_interval:=0.05",
+                         "diagnostics_period:=0.3", "save_every:=0"),
+            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )
+        try:
+            assert collector.wait_for({"/diagnostics": 1}, timeout=30), "node did not come up"
+            assert collector.spin_until(lambda: publisher.get_subscription_count() > 0, 20)
+
+            # malformed and empty clouds: counted, skipped, the node goes on
+            # (one at a time: the node's sensor-data QoS keeps only the last 5 of a burst)
+            for k, msg in enumerate(malformed(100.0)):
+                msg.header.stamp.sec = 100 + k
+                publisher.publish(msg)
+                assert collector.spin_until(lambda: stats(collector)["scans_received"] >= k + 1, 20)
+            publisher.publish(scan(200.0, 1))
+            assert collector.spin_until(lambda: stats(collector)["keyframes_processed"] >= 1, 20)
+            s = latest(collector)
+            assert (s["malformed_scans"], s["empty_scans"]) == (4, 2)
+            assert s["processing_errors"] == 0 and node.poll() is None
+
+            # a burst faster than processing: the newest is kept, the rest counted as dropped
+            for k in range(40):
+                publisher.publish(scan(300.0 + 0.1 * k, k))
+            collector.spin_until(lambda: stats(collector)["scans_received"] >= 47, 30)
+            s = settle(collector)
+            assert s["dropped_scans"] > 0
+            assert s["keyframes_processed"] + s["dropped_scans"] <= s["scans_received"]
+            assert s["database_size"] == s["keyframes_processed"]
+
+            # services
+            saved = call(collector, "/vbrl_node/save_database")
+            assert saved.success and database.is_file()
+            cleared = call(collector, "/vbrl_node/clear_database")
+            assert cleared.success and "cleared" in cleared.message
+            assert latest(collector)["database_size"] == 0
+            publisher.publish(scan(400.0, 99))
+            assert collector.spin_until(lambda: stats(collector)["database_size"] == 1, 20)
+        finally:
+            node.send_signal(signal.SIGTERM)
+            output, _ = node.communicate(timeout=60)
+        probe.destroy_node()
+    assert node.returncode == 0, output
+    assert "saved 1 keyframes" in output  # SIGTERM saved the database

@@ -1,0 +1,157 @@
+"""Drive a real ``vbrl_node`` process with a replayed bag and score what it publishes.
+
+Used by ``vbrl demo`` and by the end-to-end tests: simulate session bags,
+start the node on an isolated ROS domain, replay a bag into it, collect its
+loop closures and diagnostics, stop it with SIGINT (which saves the
+database), and measure precision and recall against ground-truth positions.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vbrl_ros.io.bag_writer import write_scan_bag
+
+CLOSURE_TOPIC = "/vbrl_node/loop_closures"
+CORRECT_WITHIN_M = 5.0  # a closure is correct when the two scans were taken this close
+
+
+@dataclass
+class SessionBag:
+    path: Path
+    positions: dict[float, np.ndarray]  # stamp (rounded to 1 us) -> ground-truth position
+
+
+@dataclass
+class SessionResult:
+    closures: list[dict]  # rows of the loop-closure message (see ros_messages)
+    stats: dict[str, str]  # the node's last diagnostics values
+    node_output: str
+    returncode: int
+
+
+def stamp_key(stamp: float) -> float:
+    return round(float(stamp), 6)
+
+
+def simulate_session_bags(
+    out: Path, scenarios: tuple[tuple[str, int], ...], *, town_seed: int = 5, blocks: int = 1,
+    loops: int = 2, spacing_m: float = 2.0, beams: int = 32, columns: int = 900,
+    progress: bool = False,
+) -> dict[str, SessionBag]:
+    """One mcap bag per (scenario, run seed), all on the same town and route."""
+    from vbrl_ros.simulator import LidarConfig, RouteConfig, TownConfig, generate_town, make_route
+    from vbrl_ros.simulator import simulate_run
+
+    town = generate_town(TownConfig(blocks_x=blocks, blocks_y=blocks), seed=town_seed)
+    bags = {}
+    for k, (name, seed) in enumerate(scenarios):
+        # sessions do not scan from the very same spots
+        route = make_route(town, RouteConfig(loops=loops, spacing_m=spacing_m,
+                                             sample_offset_m=0.5 * k * spacing_m))
+        run = simulate_run(town, route, LidarConfig(beams=beams, columns=columns), name, seed=seed)
+        path = out / name
+        if not (path / "metadata.yaml").is_file():
+            clouds = run.point_clouds(progress, f"simulating {name}")  # lazy (N, 4) arrays
+            path = write_scan_bag(path, clouds, run.stamps, run.poses)
+        bags[name] = SessionBag(path, {stamp_key(t): p for t, p in zip(run.stamps, run.poses[:, :3, 3])})
+    return bags
+
+
+def run_node_session(
+    bag: Path, database: Path, env: dict[str, str], context, *, rate: float = 2.0,
+    node_params: tuple[str, ...] = (), timeout: float = 600.0,
+) -> SessionResult:
+    """Start vbrl_node, replay ``bag`` into it, wait until it is idle, stop it with SIGINT."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from std_msgs.msg import Float64MultiArray
+
+    from vbrl_ros.ros_messages import parse_closures
+    from vbrl_ros.ros_testing import MessageCollector
+
+    probe = rclpy.create_node("vbrl_session_probe", context=context)
+    collector = MessageCollector(probe, {CLOSURE_TOPIC: Float64MultiArray, "/diagnostics": DiagnosticArray})
+    params = ("odom_topic:=/odom", f"database_path:={database}", "diagnostics_period:=0.5", *node_params)
+    node = subprocess.Popen(
+        [sys.executable, "-m", "vbrl_ros.node", "--ros-args", *[a for p in params for a in ("-p", p)]],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    try:
+        if not collector.wait_for({"/diagnostics": 1}, timeout=60):
+            raise RuntimeError("vbrl_node did not come up")
+        player = subprocess.Popen(
+            [sys.executable, "-m", "vbrl_ros.replay", str(bag), "--rate", str(rate), "--quiet",
+             "--wait-for-subscribers", "1", "--wait-topics", "/points", "/odom"],
+            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )
+        # keep spinning while the replay runs, so the probe's queues stay current
+        collector.spin_until(lambda: player.poll() is not None, timeout=timeout)
+        replay_output, _ = player.communicate(timeout=30)
+        if player.returncode != 0:
+            raise RuntimeError(f"replay failed: {replay_output}")
+        stats = _wait_until_idle(collector)
+    finally:
+        node.send_signal(signal.SIGINT)
+        output, _ = node.communicate(timeout=120)
+    closures = [row for msg in collector.messages[CLOSURE_TOPIC] for row in parse_closures(msg)]
+    collector.close()
+    probe.destroy_node()
+    return SessionResult(closures, stats, output, node.returncode)
+
+
+def _wait_until_idle(collector, timeout: float = 120.0) -> dict[str, str]:
+    """Diagnostics once the node's processed-keyframe count stops moving."""
+    previous, deadline = None, time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        collector.spin_until(lambda: False, 1.2)  # drain: > 2 diagnostics periods
+        last = collector.messages["/diagnostics"][-1].status[0]
+        current = {kv.key: kv.value for kv in last.values}
+        if previous is not None and current["keyframes_processed"] == previous["keyframes_processed"]:
+            return current
+        previous = current
+    raise RuntimeError("vbrl_node never went idle")
+
+
+def closure_errors(closures: list[dict], positions: dict[float, np.ndarray]) -> np.ndarray:
+    """Ground-truth distance (m) between the query and match scan of each closure."""
+    return np.array([
+        np.linalg.norm(positions[stamp_key(c["query_stamp"])] - positions[stamp_key(c["match_stamp"])])
+        for c in closures
+    ])
+
+
+def revisit_stamps(
+    positions: dict[float, np.ndarray], database: dict[float, np.ndarray],
+    exclude_recent_s: float | None, radius: float = 3.0,
+) -> set[float]:
+    """Stamps of scans with a database scan within ``radius`` (older than exclude_recent_s, if given)."""
+    db_stamps = np.array(list(database))
+    db_xyz = np.array(list(database.values()))
+    out = set()
+    for stamp, xyz in positions.items():
+        visible = np.ones(len(db_stamps), dtype=bool)
+        if exclude_recent_s is not None:  # same session: the node's recency exclusion
+            visible = db_stamps < stamp - exclude_recent_s
+        if visible.any() and (np.linalg.norm(db_xyz[visible] - xyz, axis=1) < radius).any():
+            out.add(stamp)
+    return out
+
+
+def precision_recall(
+    closures: list[dict], positions: dict[float, np.ndarray], revisits: set[float]
+) -> tuple[float, float]:
+    """Precision of the closures, and the share of revisit scans that got a correct one."""
+    if not closures:
+        return float("nan"), 0.0
+    errors = closure_errors(closures, positions)
+    correct = {stamp_key(c["query_stamp"]) for c, e in zip(closures, errors) if e < CORRECT_WITHIN_M}
+    recall = len(correct & revisits) / len(revisits) if revisits else float("nan")
+    return float(np.mean(errors < CORRECT_WITHIN_M)), recall
