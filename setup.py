@@ -35,6 +35,7 @@ setup(
             "pytest-xdist>=3",
             "hypothesis>=6",
             "scikit-image>=0.22",
+            "pyyaml>=6",
             "colcon-core>=0.15",
             "colcon-ros>=0.4",
         ],
