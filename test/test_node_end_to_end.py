@@ -56,6 +56,11 @@ def test_loop_closures_within_and_across_sessions(bags, tmp_path):
     assert int(s["malformed_scans"]) == int(s["processing_errors"]) == 0
     assert first.closures, "no loop closure in a session that drives its loop twice"
     assert all(c["query_session"] == c["match_session"] == 0 for c in first.closures)
+    # RViz: a sphere per keyframe with a pose and a line per loop edge (the first
+    # keyframe or two can precede the first odometry message: no pose, no sphere)
+    nodes, edges = first.markers.markers
+    assert int(s["database_size"]) - 2 <= len(nodes.points) <= int(s["database_size"])
+    assert 2 * (len(first.closures) - 2) <= len(edges.points) <= 2 * len(first.closures)
     precision, recall = precision_recall(
         first.closures, summer.positions, revisit_stamps(summer.positions, summer.positions, 30.0))
     print(f"session 0: {len(first.closures)} closures, precision {precision:.2f}, recall {recall:.2f}")

@@ -20,6 +20,7 @@ import numpy as np
 from vbrl_ros.io.bag_writer import write_scan_bag
 
 CLOSURE_TOPIC = "/vbrl_node/loop_closures"
+MARKER_TOPIC = "/vbrl_node/markers"
 CORRECT_WITHIN_M = 5.0  # a closure is correct when the two scans were taken this close
 
 
@@ -33,6 +34,7 @@ class SessionBag:
 class SessionResult:
     closures: list[dict]  # rows of the loop-closure message (see ros_messages)
     stats: dict[str, str]  # the node's last diagnostics values
+    markers: object | None  # the last visualization_msgs/MarkerArray, if any
     node_output: str
     returncode: int
 
@@ -73,12 +75,14 @@ def run_node_session(
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import Float64MultiArray
+    from visualization_msgs.msg import MarkerArray
 
     from vbrl_ros.ros_messages import parse_closures
     from vbrl_ros.ros_testing import MessageCollector
 
     probe = rclpy.create_node("vbrl_session_probe", context=context)
-    collector = MessageCollector(probe, {CLOSURE_TOPIC: Float64MultiArray, "/diagnostics": DiagnosticArray})
+    collector = MessageCollector(probe, {CLOSURE_TOPIC: Float64MultiArray, "/diagnostics": DiagnosticArray,
+                                         MARKER_TOPIC: MarkerArray})
     params = ("odom_topic:=/odom", f"database_path:={database}", "diagnostics_period:=0.5", *node_params)
     node = subprocess.Popen(
         [sys.executable, "-m", "vbrl_ros.node", "--ros-args", *[a for p in params for a in ("-p", p)]],
@@ -102,9 +106,10 @@ def run_node_session(
         node.send_signal(signal.SIGINT)
         output, _ = node.communicate(timeout=120)
     closures = [row for msg in collector.messages[CLOSURE_TOPIC] for row in parse_closures(msg)]
+    markers = collector.messages[MARKER_TOPIC][-1] if collector.messages[MARKER_TOPIC] else None
     collector.close()
     probe.destroy_node()
-    return SessionResult(closures, stats, output, node.returncode)
+    return SessionResult(closures, stats, markers, output, node.returncode)
 
 
 def _wait_until_idle(collector, timeout: float = 120.0) -> dict[str, str]:
