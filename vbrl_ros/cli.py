@@ -35,8 +35,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    return run_parsed(build_parser().parse_args(argv))
+
+
+def run_parsed(args: argparse.Namespace) -> int:
+    """Run a parsed subcommand: user errors print one line and exit 2, Ctrl-C exits 130."""
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

@@ -455,14 +455,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="vbrl")
     register(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(["replay", *(sys.argv[1:] if argv is None else argv)])
-    try:
-        return int(args.func(args) or 0)
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-    except (ValueError, OSError) as error:
-        print(f"vbrl replay: error: {error}", file=sys.stderr)
-        return 2
+    from vbrl_ros.cli import run_parsed
+
+    return run_parsed(args)
 
 
 if __name__ == "__main__":

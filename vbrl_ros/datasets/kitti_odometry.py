@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from vbrl_ros.datasets.base import Scan, ScanSource, ScanSourceError
-from vbrl_ros.datasets.kitti_style import read_kitti_bin, read_times_txt, scan_files
+from vbrl_ros.datasets.base import ScanSourceError
+from vbrl_ros.datasets.kitti_style import BinFolderSource, read_times_txt, scan_files
 from vbrl_ros.poses import read_poses_txt
 
 
@@ -59,7 +59,7 @@ def locate_sequence(path: Path, sequence: str | int | None) -> tuple[Path, Path 
     return folder, (poses if poses.is_file() else None)
 
 
-class KittiOdometrySource(ScanSource):
+class KittiOdometrySource(BinFolderSource):
     """One KITTI odometry sequence; one small file per scan, so random access is cheap."""
 
     def __init__(self, path: str | Path, sequence: str | int | None = None) -> None:
@@ -82,13 +82,3 @@ class KittiOdometrySource(ScanSource):
             lidar_poses = camera_to_lidar_poses(read_poses_txt(poses_file), read_calib_tr(calib))
             self.set_poses(lidar_poses, origin=str(poses_file))
 
-    def __len__(self) -> int:
-        return len(self._files)
-
-    @property
-    def stamps(self) -> np.ndarray:
-        return self._stamps
-
-    def read_scan(self, index: int) -> Scan:
-        points, intensity = read_kitti_bin(self._files[index])
-        return Scan(points, intensity, float(self._stamps[index]), index)

@@ -47,7 +47,25 @@ def read_times_txt(path: Path, count: int) -> np.ndarray:
     return times
 
 
-class KittiStyleSource(ScanSource):
+class BinFolderSource(ScanSource):
+    """A source whose scans are ``self._files`` (KITTI .bin) stamped by ``self._stamps``."""
+
+    _files: list[Path]
+    _stamps: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self._files)
+
+    @property
+    def stamps(self) -> np.ndarray:
+        return self._stamps
+
+    def read_scan(self, index: int) -> Scan:
+        points, intensity = read_kitti_bin(self._files[index])
+        return Scan(points, intensity, float(self._stamps[index]), index)
+
+
+class KittiStyleSource(BinFolderSource):
     """A KITTI-style folder. Every access reads one small file: random access is as cheap as iteration."""
 
     def __init__(self, folder: str | Path) -> None:
@@ -67,16 +85,6 @@ class KittiStyleSource(ScanSource):
         if poses.exists():
             self.set_poses(read_poses_txt(poses), origin="poses.txt")
 
-    def __len__(self) -> int:
-        return len(self._files)
-
-    @property
-    def stamps(self) -> np.ndarray:
-        return self._stamps
-
-    def read_scan(self, index: int) -> Scan:
-        points, intensity = read_kitti_bin(self._files[index])
-        return Scan(points, intensity, float(self._stamps[index]), index)
 
 
 def _scan_rows(scan: np.ndarray | Scan, index: int) -> np.ndarray:
