@@ -21,6 +21,7 @@ setup(
     ],
     install_requires=[
         "numpy>=1.26",
+        "numba>=0.60",
         "scipy>=1.11",
         "rosbags>=0.10",
         "kiss-icp>=1.0",

@@ -1,9 +1,10 @@
 """``vbrl bench``: the speed targets of DESIGN.md §5, measured and printed as a table.
 
 Figures are medians over repeated runs in one process, so compare ratios
-within one run rather than absolute times across machines. The featurizer is
-single-threaded numpy; the solver uses whatever BLAS threads numpy has (the
-table says how many).
+within one run rather than absolute times across machines. The featurizer runs
+on one core (a compiled single pass plus numpy; its JIT compile is excluded by
+the warm-up runs); the solver uses whatever BLAS threads numpy has (the table
+says how many).
 """
 
 from __future__ import annotations

@@ -6,9 +6,10 @@ XZ-HOG, YZ-HOG and finally subvoxel occupancy; inside a modality, voxel-major.
 :class:`FeatureLayout` says which voxel and modality each row belongs to —
 the groups of the structured-sparsity norms and of the score.
 
-Everything is computed with a handful of ``np.bincount`` calls over the
-points, so the cost is linear in the number of points with no Python loop
-over voxels (the hot path of the online node).
+The hot path (:meth:`Featurizer.modalities`) reads the points once in a
+compiled kernel (:mod:`vbrl_ros.feature_kernel`); :meth:`Featurizer.modalities_numpy`
+computes the same with a handful of ``np.bincount`` calls and is the
+reference the tests hold the kernel to. Neither loops over voxels in Python.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from functools import cached_property
 import numpy as np
 
 from vbrl_ros.config import VBRLConfig
+from vbrl_ros.feature_kernel import accumulate_voxels
 from vbrl_ros.hog import hog_batch
 from vbrl_ros.voxelization import CartesianVoxelGrid
 
@@ -87,39 +89,62 @@ class Featurizer:
         return np.concatenate([m.ravel() for m in self.modalities(points)]).astype(np.float32)
 
     def modalities(self, points: np.ndarray) -> list[np.ndarray]:
-        """The five per-voxel feature blocks, each (n_voxels, k_i), float64."""
-        cfg = self.config.features
+        """The five per-voxel feature blocks, each (n_voxels, k_i), float64 (compiled path)."""
+        points = np.asarray(points)
+        if points.ndim != 2 or points.shape[1] < 3:
+            raise ValueError(f"points must be an (N, 3) array, got shape {points.shape}")
+        if points.dtype not in (np.float32, np.float64):
+            points = points.astype(np.float64)
+        grid = self.grid
+        counts, moments, rasters, octants = accumulate_voxels(
+            points, float(self.config.grid.extent_xy), self.config.grid.cells_xy,
+            grid.z_edges, grid.z_slope, grid.z_intercept, self.config.features.raster_size,
+        )
+        return self._finish(counts, moments, rasters, octants)
+
+    def modalities_numpy(self, points: np.ndarray) -> list[np.ndarray]:
+        """Reference implementation of :meth:`modalities` in plain numpy (same results)."""
         v = self.grid.n_voxels
-        size = cfg.raster_size
+        size = self.config.features.raster_size
         a = self.grid.assign(points, subdivisions=size)
         px, py, pz = a.subcell
         counts = np.bincount(a.voxel, minlength=v + 1)[:v]
-        kept = counts >= cfg.min_points  # sparser voxels count as empty
-
         base = a.voxel * size
-        snapshots = np.concatenate(
+        rasters = np.stack(
             [  # rows x columns: XY = y x x, XZ = z x x, YZ = z x y
                 _histogram((base + py) * size + px, v * size * size),
                 _histogram((base + pz) * size + px, v * size * size),
                 _histogram((base + pz) * size + py, v * size * size),
             ]
         ).reshape(3, v, size, size)
-        hog = np.zeros((3, v, cfg.hog_length))
-        if kept.any():  # empty voxels have no gradient: skip their rasters
-            rasters = snapshots[:, kept]
-            peak = rasters.max(axis=(2, 3), keepdims=True)
-            rasters /= peak  # density-independent; kept voxels have points
-            hog[:, kept] = hog_batch(
-                rasters.reshape(-1, size, size), cfg.hog_orientations, cfg.hog_cells
-            ).reshape(3, -1, cfg.hog_length)
-
         half = size // 2  # octant bit order: x + 2y + 4z
         octant = (px >= half) + 2 * (py >= half) + 4 * (pz >= half)
-        occupancy = _histogram(a.voxel * OCCUPANCY_BITS + octant, v * OCCUPANCY_BITS)
-        occupancy = (occupancy.reshape(v, OCCUPANCY_BITS) > 0).astype(np.float64)
+        octants = _histogram(a.voxel * OCCUPANCY_BITS + octant, v * OCCUPANCY_BITS)
+        x, y, z = a.xyz
 
-        covariance = _covariance(a.voxel, a.xyz, counts, v)
-        blocks = [covariance, hog[0], hog[1], hog[2], occupancy]
+        def total(weights: np.ndarray) -> np.ndarray:
+            return np.bincount(a.voxel, weights=weights, minlength=v + 1)[:v]
+
+        moments = np.stack([total(w) for w in (x, y, z, x * x, y * y, z * z, x * y, x * z, y * z)],
+                           axis=1)
+        return self._finish(counts, moments, rasters, octants.reshape(v, OCCUPANCY_BITS))
+
+    def _finish(self, counts: np.ndarray, moments: np.ndarray, rasters: np.ndarray,
+                octants: np.ndarray) -> list[np.ndarray]:
+        """Per-voxel accumulations -> the five feature blocks."""
+        cfg = self.config.features
+        v = self.grid.n_voxels
+        kept = counts >= cfg.min_points  # sparser voxels count as empty
+        hog = np.zeros((3, v, cfg.hog_length))
+        if kept.any():  # empty voxels have no gradient: skip their rasters
+            snapshots = rasters[:, kept]
+            snapshots /= snapshots.max(axis=(2, 3), keepdims=True)  # density-independent
+            size = cfg.raster_size
+            hog[:, kept] = hog_batch(
+                snapshots.reshape(-1, size, size), cfg.hog_orientations, cfg.hog_cells
+            ).reshape(3, -1, cfg.hog_length)
+        occupancy = (octants > 0).astype(np.float64)
+        blocks = [_covariance(counts, moments), hog[0], hog[1], hog[2], occupancy]
         for block in blocks:
             block[~kept] = 0.0
         return blocks
@@ -130,27 +155,20 @@ def _histogram(index: np.ndarray, length: int) -> np.ndarray:
     return np.bincount(index, minlength=length + 1)[:length].astype(np.float64)
 
 
-def _covariance(voxel: np.ndarray, xyz: np.ndarray, counts: np.ndarray, v: int) -> np.ndarray:
-    """Sample covariance (n - 1 normalisation, as numpy.cov) of each voxel's points.
+def _covariance(counts: np.ndarray, moments: np.ndarray) -> np.ndarray:
+    """Sample covariance (n - 1 normalisation, as numpy.cov) from per-voxel moment sums.
 
-    One pass of sums, E[pp^T] - mean mean^T, in float64: with coordinates
-    within ~100 m of the sensor the cancellation costs ~1e-12 m^2, far below
-    any real spread, so no per-voxel centring pass is needed.
+    ``moments`` holds the sums of x, y, z, xx, yy, zz, xy, xz, yz. One pass
+    of sums in float64 is enough: with coordinates within ~100 m of the
+    sensor, E[pp^T] - mean mean^T loses ~1e-12 m^2, far below any real spread.
     Fewer than 2 points -> zeros.
     """
-    x, y, z = xyz
-
-    def total(weights: np.ndarray) -> np.ndarray:
-        return np.bincount(voxel, weights=weights, minlength=v + 1)[:v]
-
     n = counts.astype(np.float64)
-    sums = np.stack([total(x), total(y), total(z)], axis=1)
+    sums = moments[:, :3]
     mean = sums / np.maximum(n, 1.0)[:, None]
-    pairs = ((x, x), (y, y), (z, z), (x, y), (x, z), (y, z))
     index = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
-    cov = np.stack(
-        [total(p * q) - sums[:, i] * mean[:, j] for (p, q), (i, j) in zip(pairs, index)], axis=1
-    )
+    cov = np.stack([moments[:, 3 + k] - sums[:, i] * mean[:, j] for k, (i, j) in enumerate(index)],
+                   axis=1)
     cov /= np.maximum(n - 1.0, 1.0)[:, None]
     cov[n < 2] = 0.0
     return cov

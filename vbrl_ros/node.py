@@ -71,6 +71,8 @@ class VbrlNode(Node):
             ),
         )
         self.session = session
+        # compile (or load from cache) the featurizer kernel now, not on the first keyframe
+        self.detector.featurizer.describe(np.zeros((1, 3)))
         self.stats = NodeStats()
         self._db_lock = threading.Lock()
         self._mailbox = threading.Condition()

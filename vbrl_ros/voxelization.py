@@ -56,6 +56,18 @@ class CartesianVoxelGrid:
     def n_voxels(self) -> int:
         return self.config.n_voxels
 
+    @property
+    def z_edges(self) -> np.ndarray:
+        return self._z_edges
+
+    @property
+    def z_slope(self) -> np.ndarray:
+        return self._z_slope
+
+    @property
+    def z_intercept(self) -> np.ndarray:
+        return self._z_intercept
+
     def voxel_layer(self) -> np.ndarray:
         """Layer (0 = bottom) of every voxel, shape (n_voxels,)."""
         return np.repeat(np.arange(self.config.n_layers), self.config.cells_xy**2)
