@@ -1,0 +1,21 @@
+"""The core library can be used without ROS: importing it loads no ROS package."""
+
+import subprocess
+import sys
+
+CORE = ["config", "voxelization", "hog", "feature_kernel", "features", "solver", "scoring",
+        "model", "database", "registration", "loop_closure", "scan_context", "training",
+        "evaluation", "simulator"]
+
+
+def test_core_modules_import_no_ros_package():
+    code = (
+        "import sys\n"
+        + "".join(f"import vbrl_ros.{name}\n" for name in CORE)
+        + "ros = sorted(m for m in sys.modules if m.split('.')[0] in "
+        "('rclpy', 'sensor_msgs', 'std_msgs', 'nav_msgs', 'geometry_msgs', 'rosidl_runtime_py'))\n"
+        "print(','.join(ros))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == ""
