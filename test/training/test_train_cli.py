@@ -107,3 +107,16 @@ def test_bad_inputs_exit_2(sources, tmp_path, monkeypatch, capsys):
     errors = capsys.readouterr().err.strip().splitlines()
     assert len(errors) == 2 and "--cv" in errors[1]
     assert json.dumps(errors)  # one plain line each
+
+
+def test_targets_places_labels_y_by_position(sources, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "places.npz"
+    assert vbrl(monkeypatch, "train", *sources, "--out", out, "--every", "2", "--quiet",
+                "--workers", "1", "--no-ablations", "--targets", "places", "--place-size", "20") == 0
+    model = load_model(out)
+    assert len(model.scenarios) > 2 and all(name.startswith("place_") for name in model.scenarios)
+    assert model.W.shape[1] == len(model.scenarios)
+    assert "places" in model.metadata["targets"]
+    assert vbrl(monkeypatch, "train", *sources, "--out", out, "--targets", "places", "--cv", "2",
+                "--quiet") == 2
+    assert "--targets places" in capsys.readouterr().err

@@ -30,6 +30,7 @@ from vbrl_ros.training.fit import TrainingResult, fit_model
 from vbrl_ros.training.keyframes import featurize, select_keyframes, source_points
 from vbrl_ros.training import streaming
 from vbrl_ros.training.report import importance_report
+from vbrl_ros.training.targets import TARGETS, place_labels
 from vbrl_ros.training.threshold import recommend_threshold
 
 
@@ -125,6 +126,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("sources", nargs="+", type=Path, metavar="SOURCE")
     parser.add_argument("--out", type=Path, required=True, metavar="MODEL.npz")
     parser.add_argument("--labels", help="comma-separated scenario label per SOURCE")
+    parser.add_argument("--targets", choices=TARGETS, default="scenarios",
+                        help="what Y labels: the scenario of each source (DESIGN.md, default) or "
+                             "places, cells of --place-size metres (needs poses; better on the "
+                             "simulator's long-term protocol, see README)")
+    parser.add_argument("--place-size", type=float, default=6.0, metavar="M",
+                        help="place cell size for --targets places (6 m)")
     parser.add_argument("--lambda1", type=float, default=10.0, help="voxel group norm weight (10)")
     parser.add_argument("--lambda2", type=float, default=0.1,
                         help="modality group + row norm weight (0.1)")
@@ -185,6 +192,8 @@ def run(args: argparse.Namespace) -> int:
     stream, counted = _should_stream(args, d)
     base_meta = {"sources": [str(p) for p in args.sources], "labels": names}
     lambda1, lambda2 = args.lambda1, args.lambda2
+    if args.targets == "places" and (stream or args.cv):
+        raise ValueError("--targets places works with in-memory training without --cv for now")
     if stream:
         if args.cv:
             raise ValueError("--cv needs the training descriptors in memory; run it on a subset "
@@ -226,8 +235,14 @@ def run(args: argparse.Namespace) -> int:
             args.out.parent.mkdir(parents=True, exist_ok=True)
             print(f"cross-validation heat map: {cv_module.plot_cv(result_cv, sibling_path(args.out, 'cv.png'))}")
 
+        targets, target_names = data.labels, data.scenario_names
+        if args.targets == "places":
+            targets, target_names = place_labels(data.positions, args.place_size)
+            base_meta["targets"] = f"places ({len(target_names)} cells of {args.place_size:g} m)"
+            print(f"Y labels {len(target_names)} places ({args.place_size:g} m cells)")
+
         def fit(l1: float, l2: float, meta: dict) -> TrainingResult:
-            return fit_model(data.descriptors, data.labels, data.scenario_names, config,
+            return fit_model(data.descriptors, targets, target_names, config,
                              lambda1=l1, lambda2=l2, metadata=meta)
 
     result = fit(lambda1, lambda2, dict(base_meta))
