@@ -24,13 +24,13 @@ from __future__ import annotations
 
 import json
 import math
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from vbrl_ros.io.atomic import atomic_write
+from vbrl_ros.io.npz import one_line, read_npz
 from vbrl_ros.scoring import WeightedL1Scorer
 
 DATABASE_FORMAT = "vbrl_ros.keyframes"
@@ -324,16 +324,7 @@ class KeyframeDatabase:
     def load(cls, path: str | Path, scorer: WeightedL1Scorer, model_id: str) -> KeyframeDatabase:
         """Load and validate; any problem raises :class:`DatabaseFileError` (one line)."""
         path = Path(path)
-        if not path.is_file():
-            raise DatabaseFileError(f"keyframe database {path} does not exist")
-        try:
-            with np.load(path, allow_pickle=False) as archive:
-                contents = {key: archive[key] for key in archive.files}
-        except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as error:
-            raise DatabaseFileError(
-                f"{path} is not a readable .npz keyframe database (truncated, corrupt or "
-                f"pickled?): {_one_line(error)}"
-            ) from None
+        contents = read_npz(path, DatabaseFileError, "keyframe database")
         if _scalar_str(contents.get("format")) != DATABASE_FORMAT:
             raise DatabaseFileError(
                 f"{path} is not a vbrl_ros keyframe database (no format tag '{DATABASE_FORMAT}')"
@@ -370,7 +361,7 @@ class KeyframeDatabase:
             db = cls(scorer, model_id)
             db._restore(contents, [str(s) for s in sessions])
         except (ValueError, TypeError) as error:
-            raise DatabaseFileError(f"{path} is inconsistent: {_one_line(error)}") from None
+            raise DatabaseFileError(f"{path} is inconsistent: {one_line(error)}") from None
         return db
 
     def _restore(self, c: dict[str, np.ndarray], sessions: list[str]) -> None:
@@ -426,5 +417,3 @@ def _scalar_int(value: np.ndarray | None) -> int:
     return int(value)
 
 
-def _one_line(error: BaseException) -> str:
-    return " ".join(str(error).split()) or type(error).__name__

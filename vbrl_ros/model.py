@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,6 +31,7 @@ import numpy as np
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.features import Featurizer, FeatureLayout
 from vbrl_ros.io.atomic import atomic_write
+from vbrl_ros.io.npz import one_line, read_npz
 from vbrl_ros.scoring import WeightedL1Scorer, importance_weights, row_weights
 
 MODEL_FORMAT = "vbrl_ros.model"
@@ -139,15 +139,7 @@ def load_model(path: str | Path, expected_config: VBRLConfig | None = None) -> V
     mis-scoring.
     """
     path = Path(path)
-    if not path.is_file():
-        raise ModelFileError(f"model file {path} does not exist")
-    try:
-        with np.load(path, allow_pickle=False) as archive:
-            contents = {key: archive[key] for key in archive.files}
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as error:
-        raise ModelFileError(
-            f"{path} is not a readable .npz model (truncated or corrupt?): {_one_line(error)}"
-        ) from None
+    contents = read_npz(path, ModelFileError, "model")
     if str(contents.get("format", "")) != MODEL_FORMAT:
         raise ModelFileError(f"{path} is not a vbrl_ros model file (no format tag '{MODEL_FORMAT}')")
     version = int(contents.get("format_version", -1))
@@ -168,7 +160,7 @@ def load_model(path: str | Path, expected_config: VBRLConfig | None = None) -> V
         scenarios = json.loads(str(contents["scenarios_json"]))
         metadata = json.loads(str(contents.get("metadata_json", "{}")))
     except (ValueError, TypeError) as error:
-        raise ModelFileError(f"{path} has an invalid configuration: {_one_line(error)}") from None
+        raise ModelFileError(f"{path} has an invalid configuration: {one_line(error)}") from None
     if expected_config is not None and config != expected_config:
         raise ModelFileError(
             f"{path} was trained for another configuration ({'; '.join(config.differences(expected_config))})"
@@ -185,6 +177,3 @@ def load_model(path: str | Path, expected_config: VBRLConfig | None = None) -> V
     except ModelFileError as error:
         raise ModelFileError(f"{path}: {error}") from None
 
-
-def _one_line(error: BaseException) -> str:
-    return " ".join(str(error).split()) or type(error).__name__
