@@ -29,7 +29,7 @@ from vbrl_ros.evaluation.retrieval import RetrievalResults, cross_session_retrie
 from vbrl_ros.io.atomic import atomic_write
 from vbrl_ros.model import VBRLModel, load_model
 from vbrl_ros.training.ablations import FULL_NAME, discover_ablations
-from vbrl_ros.training.cli import add_source_arguments
+from vbrl_ros.training.cli import add_keyframe_arguments, add_source_arguments
 
 TOP_K = 5  # Recall@5
 REPORT_RADII = (3.0, 5.0)  # DESIGN.md §3: report 3 m and 5 m
@@ -54,10 +54,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="P1: keyframes excluded before each query (50; = scans by default)")
     parser.add_argument("--radius", type=float, default=3.0,
                         help="revisit radius, metres (3); 5 m is always reported too")
-    selection = parser.add_mutually_exclusive_group()
-    selection.add_argument("--keyframe-distance", type=float, metavar="M",
-                           help="one keyframe every M metres of travel (needs poses)")
-    selection.add_argument("--every", type=int, metavar="N", help="one keyframe every N scans")
+    add_keyframe_arguments(parser)
     add_source_arguments(parser)
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the metrics as JSON")
     parser.add_argument("--plot", type=Path, metavar="FILE",

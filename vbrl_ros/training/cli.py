@@ -46,6 +46,14 @@ class TrainingData:
     keyframe_index: np.ndarray  # (n,) scan index inside its source
 
 
+def add_keyframe_arguments(parser: argparse.ArgumentParser) -> None:
+    """--keyframe-distance / --every, shared by the commands that select keyframes."""
+    selection = parser.add_mutually_exclusive_group()
+    selection.add_argument("--keyframe-distance", type=float, metavar="M",
+                           help="one keyframe every M metres of travel (needs poses)")
+    selection.add_argument("--every", type=int, metavar="N", help="one keyframe every N scans")
+
+
 def add_source_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared by every command that reads scan sources."""
     parser.add_argument("--topic", help="PointCloud2 topic in bags (default: the only one)")
@@ -135,10 +143,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--lambda1", type=float, default=10.0, help="voxel group norm weight (10)")
     parser.add_argument("--lambda2", type=float, default=0.1,
                         help="modality group + row norm weight (0.1)")
-    selection = parser.add_mutually_exclusive_group()
-    selection.add_argument("--keyframe-distance", type=float, metavar="M",
-                           help="one keyframe every M metres of travel (needs poses)")
-    selection.add_argument("--every", type=int, metavar="N", help="one keyframe every N scans")
+    add_keyframe_arguments(parser)
     add_source_arguments(parser)
     parser.add_argument("--ablations", action=argparse.BooleanOptionalAction, default=True,
                         help="also write MODEL.concatenation/voxel-only/modality-only.npz (default: on)")
