@@ -136,7 +136,7 @@ class VbrlNode(Node):
         now = time.monotonic()
         self.stats.received(now)
         stamp = stamp_seconds(msg.header.stamp)
-        if not self._is_keyframe(stamp, commit=False):
+        if not self._is_keyframe(stamp):
             return
         # Decode here, not in the worker: every bad message is then counted as
         # what it is (instead of vanishing as a "drop" from the mailbox) and
@@ -151,26 +151,26 @@ class VbrlNode(Node):
             self.stats.empty += 1
             self.get_logger().warning("PointCloud2 without finite points skipped", throttle_duration_sec=5.0)
             return
-        self._is_keyframe(stamp, commit=True)
+        self._mark_keyframe(stamp)
         with self._mailbox:
             if self._pending is not None:
                 self.stats.dropped += 1  # the worker is behind: keep the newest keyframe only
             self._pending = (points, stamp, self._latest_odom, now)
             self._mailbox.notify()
 
-    def _is_keyframe(self, stamp: float, commit: bool) -> bool:
+    def _is_keyframe(self, stamp: float) -> bool:
         """Keyframe every keyframe_distance of odometry travel, else every keyframe_interval."""
         last = self._last_keyframe
         if last is None:
-            keyframe = True
-        elif self._latest_odom is not None and last[1] is not None:
-            keyframe = self._travel >= self.settings.keyframe_distance
-        else:
-            keyframe = stamp - last[0] >= self.settings.keyframe_interval or stamp < last[0]
-        if keyframe and commit:
-            self._last_keyframe = (stamp, self._latest_odom)
-            self._travel = 0.0
-        return keyframe
+            return True
+        if self._latest_odom is not None and last[1] is not None:
+            return self._travel >= self.settings.keyframe_distance
+        return stamp - last[0] >= self.settings.keyframe_interval or stamp < last[0]
+
+    def _mark_keyframe(self, stamp: float) -> None:
+        """A valid scan became a keyframe: spacing now counts from it."""
+        self._last_keyframe = (stamp, self._latest_odom)
+        self._travel = 0.0
 
     # -- worker thread: the real work ------------------------------------------
 
