@@ -131,3 +131,62 @@ def test_describe_is_deterministic_and_ignores_extra_columns():
     np.testing.assert_array_equal(f.describe(pts), f.describe(with_intensity))
     shuffled = pts[rng.permutation(len(pts))]
     np.testing.assert_allclose(f.describe(pts), f.describe(shuffled), rtol=1e-5, atol=1e-6)
+
+
+# -- sectors and tied weights (polar grid) --------------------------------------------
+
+POLAR = VBRLConfig(grid=VoxelGridConfig(kind="polar", rings=3, sectors=5, max_range=15.0,
+                                        z_edges=(-2.0, 0.0, 2.0)))
+
+
+def test_cartesian_layout_is_one_sector_with_untied_weights():
+    layout = Featurizer(CONFIG).layout
+    d = layout.dimension
+    assert layout.sectors == 1
+    np.testing.assert_array_equal(layout.sector_rows, np.arange(d)[None, :])
+    assert layout.sector_rows.dtype == np.int64
+    np.testing.assert_array_equal(layout.tie_of_row, np.arange(d))
+    assert layout.weight_layout is layout
+
+
+def test_polar_sector_rows_line_up_the_same_feature_in_every_sector():
+    layout = Featurizer(POLAR).layout
+    S, d = 5, layout.dimension
+    rows = layout.sector_rows
+    assert rows.shape == (S, d // S) and rows.dtype == np.int64
+    assert sorted(rows.ravel().tolist()) == list(range(d))  # a permutation of the rows
+    voxel, modality = layout.voxel_of_row[rows], layout.modality_of_row[rows]
+    assert (voxel % S == np.arange(S)[:, None]).all()  # row s is sector s
+    # each column: one (modality, layer, ring, feature) in every sector
+    assert (modality == modality[0]).all() and (voxel // S == voxel[0] // S).all()
+    start = np.array([layout.modality_slice(m).start for m in range(layout.n_modalities)])
+    feature = (rows - start[modality]) % np.array(layout.features_per_modality)[modality]
+    assert (feature == feature[0]).all()
+    # documented column order: descriptor order without the sector
+    assert (np.diff(rows[0]) > 0).all()
+    np.testing.assert_array_equal(layout.tie_of_row[rows], np.broadcast_to(np.arange(d // S), rows.shape))
+
+
+def test_polar_weight_layout_ties_sectors_into_layer_ring_columns():
+    layout = Featurizer(POLAR).layout
+    tied = layout.weight_layout
+    assert (tied.n_voxels, tied.n_modalities) == (2 * 3, 5)
+    grid = Featurizer(POLAR).grid
+    column = grid.voxel_layer() * 3 + grid.voxel_ring()
+    np.testing.assert_array_equal(tied.voxel_of_row, column[layout.voxel_of_row])
+    np.testing.assert_array_equal(tied.modality_of_row, layout.modality_of_row)
+    # a tie class never spans two weight groups
+    np.testing.assert_array_equal(tied.voxel_of_row[layout.sector_rows],
+                                  np.broadcast_to(tied.voxel_of_row[layout.sector_rows[0]],
+                                                  layout.sector_rows.shape))
+
+
+def test_polar_features_are_never_nan_and_keep_the_layout():
+    f = Featurizer(POLAR)
+    rng = np.random.default_rng(3)
+    pts = np.concatenate([rng.normal(0, 8, (5000, 2)), rng.uniform(-3, 3, (5000, 1))], axis=1)
+    pts[::7] = np.nan
+    blocks = f.modalities(pts)
+    assert [b.shape for b in blocks] == [(f.grid.n_voxels, k) for k in f.layout.features_per_modality]
+    desc = f.describe(pts)
+    assert desc.shape == (f.dimension,) and np.isfinite(desc).all() and desc.any()

@@ -119,3 +119,26 @@ def test_identity_follows_content_not_file(tmp_path):
     again = load_model(model.save(tmp_path / "a.npz"))
     assert again.identity() == model.identity()
     assert make_model(seed=1).identity() != model.identity()
+
+
+POLAR = VBRLConfig(grid=VoxelGridConfig(kind="polar", rings=3, sectors=6, max_range=20.0))
+
+
+def test_polar_model_ties_voxel_weights_across_sectors(tmp_path):
+    model = make_model(POLAR)
+    layout = model.layout
+    assert model.w_voxel.shape == (3 * POLAR.grid.n_layers,)  # one per (layer, ring) column
+    assert model.w_voxel.sum() == pytest.approx(1.0)
+    weights = model.row_weights()
+    rows = layout.sector_rows
+    np.testing.assert_array_equal(weights[rows], np.broadcast_to(weights[rows[0]], rows.shape))
+    loaded = load_model(model.save(tmp_path / "polar.npz"), expected_config=POLAR)
+    assert loaded.config == POLAR
+    np.testing.assert_array_equal(loaded.w_voxel, model.w_voxel)
+    with pytest.raises(ModelFileError, match="w_voxel"):
+        VBRLModel(config=POLAR, W=model.W, feature_mean=model.feature_mean,
+                  feature_scale=model.feature_scale, lambda1=1.0, lambda2=0.1,
+                  scenarios=model.scenarios, w_modality=model.w_modality,
+                  w_voxel=np.full(POLAR.grid.n_voxels, 1.0 / POLAR.grid.n_voxels))
+    with pytest.raises(ModelFileError, match="grid.kind"):
+        load_model(tmp_path / "polar.npz", expected_config=CONFIG)

@@ -17,22 +17,47 @@ def _require(condition: bool, name: str, message: str) -> None:
         raise ValueError(f"invalid {name}: {message}")
 
 
+GRID_KINDS: tuple[str, ...] = ("cartesian", "polar")
+
+#: Settings only one kind of grid reads; the other kind must leave them at their
+#: defaults, so that one grid has one dict (and one model identity hash) — see to_dict.
+_CARTESIAN_ONLY = ("extent_xy", "cells_xy")
+_POLAR_ONLY = ("rings", "sectors", "max_range")
+
+
 @dataclass(frozen=True)
 class VoxelGridConfig:
-    """The paper's grid: XY cells around the sensor x bottom/middle/top layers.
+    """The voxel grid around the sensor: Cartesian (the paper's) or polar.
 
-    The grid is centred on the sensor and fixed to its axes. It covers
-    ``[-extent_xy, extent_xy)`` in x and y with ``cells_xy`` cells per side,
-    and the height bands ``z_edges[k] <= z < z_edges[k+1]`` (sensor frame,
-    metres), one layer per band. Points outside are dropped.
+    Both are centred on the sensor and cut height into the bands
+    ``z_edges[k] <= z < z_edges[k+1]`` (sensor frame, metres), one layer per band.
+
+    ``kind="cartesian"`` (default): XY cells fixed to the sensor axes covering
+    ``[-extent_xy, extent_xy)`` in x and y, ``cells_xy`` cells per side.
+
+    ``kind="polar"``: ``rings`` equal-width annuli over ``[0, max_range)`` x
+    ``sectors`` equal angles over ``[0, 2π)``, starting at +x and counter-
+    clockwise. A scan rotated about z by whole sectors permutes the sectors of
+    its descriptor (see :mod:`vbrl_ros.polar_grid`).
+
+    Points outside the grid are dropped.
     """
 
     extent_xy: float = 40.0
     cells_xy: int = 8
     z_edges: tuple[float, ...] = (-3.0, -1.0, 1.0, 6.0)
+    kind: str = "cartesian"
+    rings: int = 8
+    sectors: int = 24
+    max_range: float = 40.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "z_edges", tuple(float(z) for z in self.z_edges))
+        _require(
+            self.kind in GRID_KINDS,
+            "grid.kind",
+            f"must be one of {', '.join(GRID_KINDS)}, got {self.kind!r}",
+        )
         _require(
             math.isfinite(self.extent_xy) and self.extent_xy > 0,
             "grid.extent_xy",
@@ -54,6 +79,32 @@ class VoxelGridConfig:
             "grid.z_edges",
             f"must be finite and strictly increasing, got {self.z_edges!r}",
         )
+        _require(
+            isinstance(self.rings, int) and 1 <= self.rings <= 256,
+            "grid.rings",
+            f"must be an integer in [1, 256], got {self.rings!r}",
+        )
+        _require(
+            isinstance(self.sectors, int) and 2 <= self.sectors <= 360,
+            "grid.sectors",
+            f"must be an integer in [2, 360], got {self.sectors!r}",
+        )
+        _require(
+            isinstance(self.max_range, (int, float))
+            and math.isfinite(self.max_range)
+            and self.max_range > 0,
+            "grid.max_range",
+            f"must be a positive number of metres, got {self.max_range!r}",
+        )
+        object.__setattr__(self, "max_range", float(self.max_range))
+        unused = _CARTESIAN_ONLY if self.kind == "polar" else _POLAR_ONLY
+        defaults = VoxelGridConfig.__dataclass_fields__
+        for name in unused:
+            _require(
+                getattr(self, name) == defaults[name].default,
+                f"grid.{name}",
+                f"is not used by the {self.kind} grid; leave it at its default",
+            )
 
     @property
     def n_layers(self) -> int:
@@ -61,11 +112,36 @@ class VoxelGridConfig:
 
     @property
     def n_voxels(self) -> int:
+        if self.kind == "polar":
+            return self.rings * self.sectors * self.n_layers
         return self.cells_xy * self.cells_xy * self.n_layers
 
     @property
     def cell_size_xy(self) -> float:
         return 2.0 * self.extent_xy / self.cells_xy
+
+    @property
+    def ring_width(self) -> float:
+        """Radial width of one ring in metres (polar grid)."""
+        return self.max_range / self.rings
+
+    @property
+    def n_sectors(self) -> int:
+        """Angular sectors: ``sectors`` for the polar grid, 1 for the Cartesian one."""
+        return self.sectors if self.kind == "polar" else 1
+
+    def to_dict(self) -> dict[str, Any]:
+        """Only the settings this kind of grid reads.
+
+        A Cartesian grid gives exactly the dict it gave before polar grids
+        existed, so model files and their identity hashes are unchanged.
+        """
+        out = asdict(self)
+        out["z_edges"] = list(self.z_edges)
+        unused = (*_POLAR_ONLY, "kind") if self.kind == "cartesian" else _CARTESIAN_ONLY
+        for name in unused:
+            del out[name]
+        return out
 
 
 @dataclass(frozen=True)
@@ -126,9 +202,7 @@ class VBRLConfig:
     features: FeatureConfig = field(default_factory=FeatureConfig)
 
     def to_dict(self) -> dict[str, Any]:
-        out = asdict(self)
-        out["grid"]["z_edges"] = list(self.grid.z_edges)
-        return out
+        return {"grid": self.grid.to_dict(), "features": asdict(self.features)}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "VBRLConfig":
@@ -145,13 +219,20 @@ class VBRLConfig:
 
     def differences(self, other: "VBRLConfig") -> list[str]:
         """Human-readable list of settings that differ, e.g. ``grid.cells_xy: 8 != 10``."""
-        mine, theirs = self.to_dict(), other.to_dict()
+        # every field, not to_dict(): a Cartesian and a polar grid have different key sets
+        mine, theirs = _all_settings(self), _all_settings(other)
         return [
             f"{section}.{key}: {mine[section][key]!r} != {theirs[section][key]!r}"
             for section in mine
             for key in mine[section]
             if mine[section][key] != theirs[section][key]
         ]
+
+
+def _all_settings(config: VBRLConfig) -> dict[str, dict[str, Any]]:
+    out = asdict(config)
+    out["grid"]["z_edges"] = list(config.grid.z_edges)
+    return out
 
 
 def _build(cls: type, values: Any, section: str) -> Any:

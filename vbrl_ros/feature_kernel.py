@@ -8,12 +8,25 @@ covariance and the three snapshot rasters. It computes exactly what the
 numpy path computes — same float64 formulas, same order of summation — and a
 test checks the two agree. ``nogil``: the node's worker thread featurizes
 while rclpy's executor keeps receiving.
+
+:func:`accumulate_polar_voxels` is the same pass on the polar grid of
+:mod:`vbrl_ros.polar_grid` (voxel-local coordinates and sub-cells).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
+
+#: Odd polynomial for atan(t), t in [0, 1], error < 1.2e-5 rad (Abramowitz & Stegun 4.4.49).
+#: Here and not in polar_grid: numba's cache keys on this file, so the kernel
+#: recompiles when they change.
+ATAN_COEFFICIENTS = (0.9998660, -0.3302995, 0.1801410, -0.0851330, 0.0208351)
+_C1, _C3, _C5, _C7, _C9 = ATAN_COEFFICIENTS
+_TWO_PI = 2.0 * math.pi
+_HALF_PI = 0.5 * math.pi
 
 
 @njit(cache=True, nogil=True)
@@ -79,5 +92,116 @@ def accumulate_voxels(
         rasters[1, voxel, pz, px] += 1.0
         rasters[2, voxel, pz, py] += 1.0
         octant = (1 if px >= half else 0) + (2 if py >= half else 0) + (4 if pz >= half else 0)
+        octants[voxel, octant] += 1.0
+    return counts, moments, rasters, octants
+
+
+@njit(cache=True, nogil=True)
+def _approximate_azimuth(x: float, y: float) -> float:
+    """polar_grid.approximate_azimuth for one point, same operations in the same order."""
+    ax, ay = abs(x), abs(y)
+    t = min(ax, ay) / max(ax, ay)
+    t2 = t * t
+    a = t * (_C1 + t2 * (_C3 + t2 * (_C5 + t2 * (_C7 + t2 * _C9))))
+    if ay > ax:
+        a = _HALF_PI - a
+    if x < 0:
+        a = math.pi - a
+    if y < 0:
+        a = _TWO_PI - a
+    return a
+
+
+@njit(cache=True, nogil=True)
+def accumulate_polar_voxels(
+    points: np.ndarray,  # (N, >=3) float32 or float64
+    max_range: float,
+    rings: int,
+    sectors: int,
+    bound_cos: np.ndarray,  # (sectors * size + 1,) angular bin boundaries, see PolarVoxelGrid
+    bound_sin: np.ndarray,
+    centre_cos: np.ndarray,  # (sectors,) cos/sin of each sector's centre angle
+    centre_sin: np.ndarray,
+    z_edges: np.ndarray,  # (layers + 1,) float64
+    z_slope: np.ndarray,  # (layers,) float64
+    z_intercept: np.ndarray,  # (layers,) float64
+    size: int,  # raster size, a power of two
+):
+    """:func:`accumulate_voxels` on the polar grid: same outputs, voxel-local frames.
+
+    Moments are sums of the local x', y', z (and products); rasters and
+    octants are over (radial, angular, z) sub-cells. Mirrors
+    ``PolarVoxelGrid.assign`` operation for operation; points that are
+    non-finite, on the z axis or outside the grid are skipped.
+    """
+    layers = len(z_slope)
+    v = rings * sectors * layers
+    counts = np.zeros(v, dtype=np.int64)
+    moments = np.zeros((v, 9))
+    rasters = np.zeros((3, v, size, size))
+    octants = np.zeros((v, 8))
+    radial_scale = rings * size / max_range
+    limit_r = rings * size
+    bins = sectors * size
+    angle_scale = bins / _TWO_PI
+    z_low, z_high = z_edges[0], z_edges[-1]
+    half = size // 2
+    shift = 0
+    while (1 << shift) < size:
+        shift += 1
+    previous_bin = 0
+    for k in range(points.shape[0]):
+        x = np.float64(points[k, 0])
+        y = np.float64(points[k, 1])
+        z = np.float64(points[k, 2])
+        r = math.sqrt(x * x + y * y)
+        sr = r * radial_scale
+        if not (r > 0 and sr < limit_r and z >= z_low and z < z_high):
+            continue
+        layer = 0
+        for e in range(1, layers):
+            if z >= z_edges[e]:
+                layer += 1
+        sz = (z * z_slope[layer] + z_intercept[layer]) * size
+        # The angular bin is the unique b with the point on or left of boundary b and right
+        # of boundary b+1 (see polar_grid); walking from ANY start reaches it. Scans come in
+        # azimuth order, so the previous point's bin is usually right: two sign tests
+        # instead of the arctangent guess.
+        b = previous_bin
+        if not (bound_cos[b] * y - bound_sin[b] * x >= 0
+                and not bound_cos[b + 1] * y - bound_sin[b + 1] * x >= 0):
+            b = min(int(_approximate_azimuth(x, y) * angle_scale), bins - 1)
+            for _ in range(bins):
+                if not bound_cos[b] * y - bound_sin[b] * x < 0:
+                    break
+                b = bins - 1 if b == 0 else b - 1
+            for _ in range(bins):
+                if not bound_cos[b + 1] * y - bound_sin[b + 1] * x >= 0:
+                    break
+                b = 0 if b == bins - 1 else b + 1
+        previous_bin = b
+        isr = min(int(sr), limit_r - 1)
+        isz = min(int(sz), layers * size - 1)
+        ring, sector = isr >> shift, b >> shift
+        pr, pa, pz = isr & (size - 1), b & (size - 1), isz & (size - 1)
+        voxel = (layer * rings + ring) * sectors + sector
+        c, s = centre_cos[sector], centre_sin[sector]
+        lx = x * c + y * s
+        ly = y * c - x * s
+        counts[voxel] += 1
+        m = moments[voxel]
+        m[0] += lx
+        m[1] += ly
+        m[2] += z
+        m[3] += lx * lx
+        m[4] += ly * ly
+        m[5] += z * z
+        m[6] += lx * ly
+        m[7] += lx * z
+        m[8] += ly * z
+        rasters[0, voxel, pa, pr] += 1.0
+        rasters[1, voxel, pz, pr] += 1.0
+        rasters[2, voxel, pz, pa] += 1.0
+        octant = (1 if pr >= half else 0) + (2 if pa >= half else 0) + (4 if pz >= half else 0)
         octants[voxel, octant] += 1.0
     return counts, moments, rasters, octants

@@ -6,6 +6,12 @@ XZ-HOG, YZ-HOG and finally subvoxel occupancy; inside a modality, voxel-major.
 :class:`FeatureLayout` says which voxel and modality each row belongs to —
 the groups of the structured-sparsity norms and of the score.
 
+On the polar grid (:mod:`vbrl_ros.polar_grid`) the layout also says which
+rows are the same feature in different sectors (``sector_rows``), and the
+weights are tied across sectors: a sparsity group and an importance wV
+belong to a (layer, ring) column of voxels (``weight_layout``), so a scan
+compared under a circular sector shift is weighed the same in every sector.
+
 The hot path (:meth:`Featurizer.modalities`) reads the points once in a
 compiled kernel (:mod:`vbrl_ros.feature_kernel`); :meth:`Featurizer.modalities_numpy`
 computes the same with a handful of ``np.bincount`` calls and is the
@@ -20,21 +26,44 @@ from functools import cached_property
 import numpy as np
 
 from vbrl_ros.config import VBRLConfig
-from vbrl_ros.feature_kernel import accumulate_voxels
+from vbrl_ros.feature_kernel import accumulate_polar_voxels, accumulate_voxels
 from vbrl_ros.hog import hog_batch
-from vbrl_ros.voxelization import CartesianVoxelGrid
+from vbrl_ros.voxelization import make_grid
 
 MODALITIES: tuple[str, ...] = ("covariance", "hog_xy", "hog_xz", "hog_yz", "occupancy")
 COVARIANCE_ENTRIES = 6  # xx, yy, zz, xy, xz, yz
 OCCUPANCY_BITS = 8  # one per octant
 
 
+@dataclass(frozen=True, eq=False)
+class TiedLayout:
+    """Groups of rows that share one weight: a :class:`~vbrl_ros.scoring.RowLayout`.
+
+    ``voxel_of_row`` numbers weight groups (e.g. a polar grid's (layer, ring)
+    columns), not voxels of the grid.
+    """
+
+    voxel_of_row: np.ndarray
+    modality_of_row: np.ndarray
+    n_voxels: int
+    n_modalities: int
+
+
 @dataclass(frozen=True)
 class FeatureLayout:
-    """Which voxel and which modality each descriptor row belongs to."""
+    """Which voxel and which modality each descriptor row belongs to.
+
+    ``sectors`` > 1 (polar grid): voxel ``j`` is in sector ``j % sectors`` and
+    column ``j // sectors``; the Cartesian grid is one sector.
+    """
 
     n_voxels: int
     features_per_modality: tuple[int, ...]  # per-voxel feature count of each modality
+    sectors: int = 1
+
+    def __post_init__(self) -> None:
+        if self.sectors < 1 or self.n_voxels % self.sectors:
+            raise ValueError(f"{self.n_voxels} voxels do not split into {self.sectors} sectors")
 
     @property
     def n_modalities(self) -> int:
@@ -61,13 +90,54 @@ class FeatureLayout:
         start = self.n_voxels * sum(self.features_per_modality[:modality])
         return slice(start, start + self.n_voxels * self.features_per_modality[modality])
 
+    @cached_property
+    def sector_rows(self) -> np.ndarray:
+        """(sectors, d // sectors) int64: row ``sector_rows[s, c]`` is feature ``c`` of sector ``s``.
+
+        For a scan rotated counter-clockwise about z by ``k`` sectors (yaw
+        ``+k * 2π / sectors``), ``describe(rotated)[sector_rows[(s + k) % S]]
+        == describe(scan)[sector_rows[s]]`` (HOG and occupancy exactly,
+        covariances to round-off, unless rotation rounding moves a point across
+        a sub-cell edge). Columns are in descriptor order
+        with the sector left out: modality, then layer, then ring, then the
+        modality's feature index — the same (modality, layer, ring, feature)
+        in every sector. Cartesian: one row, ``arange(d)``.
+        """
+        sector = self.voxel_of_row % self.sectors
+        # stable sort keeps each sector's rows in descriptor order: equal columns line up
+        rows = np.argsort(sector, kind="stable").astype(np.int64)
+        return rows.reshape(self.sectors, -1)
+
+    @cached_property
+    def tie_of_row(self) -> np.ndarray:
+        """Column of ``sector_rows`` of every row (its tie class); ``arange(d)`` for Cartesian."""
+        tie = np.empty(self.dimension, dtype=np.int64)
+        tie[self.sector_rows] = np.arange(self.sector_rows.shape[1])
+        return tie
+
+    @cached_property
+    def weight_layout(self) -> FeatureLayout | TiedLayout:
+        """The groups of the sparsity norms and of wV: voxels, or (layer, ring) columns if polar.
+
+        Voxel ids of the tied layout are ``layer * rings + ring``. Cartesian:
+        this layout itself.
+        """
+        if self.sectors == 1:
+            return self
+        return TiedLayout(
+            voxel_of_row=self.voxel_of_row // self.sectors,
+            modality_of_row=self.modality_of_row,
+            n_voxels=self.n_voxels // self.sectors,
+            n_modalities=self.n_modalities,
+        )
+
 
 class Featurizer:
     """Turns one scan (points in the sensor frame) into a VBRL descriptor."""
 
     def __init__(self, config: VBRLConfig | None = None) -> None:
         self.config = config or VBRLConfig()
-        self.grid = CartesianVoxelGrid(self.config.grid)
+        self.grid = make_grid(self.config.grid)
         f = self.config.features
         self.layout = FeatureLayout(
             n_voxels=self.grid.n_voxels,
@@ -78,6 +148,7 @@ class Featurizer:
                 f.hog_length,
                 OCCUPANCY_BITS,
             ),
+            sectors=self.config.grid.n_sectors,
         )
 
     @property
@@ -95,15 +166,27 @@ class Featurizer:
             raise ValueError(f"points must be an (N, 3) array, got shape {points.shape}")
         if points.dtype not in (np.float32, np.float64):
             points = points.astype(np.float64)
-        grid = self.grid
-        counts, moments, rasters, octants = accumulate_voxels(
-            points, float(self.config.grid.extent_xy), self.config.grid.cells_xy,
-            grid.z_edges, grid.z_slope, grid.z_intercept, self.config.features.raster_size,
-        )
-        return self._finish(counts, moments, rasters, octants)
+        grid, size = self.grid, self.config.features.raster_size
+        if grid.kind == "polar":
+            bound_cos, bound_sin = grid.angular_bounds(size)
+            accumulated = accumulate_polar_voxels(
+                points, grid.config.max_range, grid.rings, grid.sectors, bound_cos, bound_sin,
+                grid.centre_cos, grid.centre_sin, grid.z_edges, grid.z_slope, grid.z_intercept,
+                size,
+            )
+        else:
+            accumulated = accumulate_voxels(
+                points, float(self.config.grid.extent_xy), self.config.grid.cells_xy,
+                grid.z_edges, grid.z_slope, grid.z_intercept, size,
+            )
+        return self._finish(*accumulated)
 
     def modalities_numpy(self, points: np.ndarray) -> list[np.ndarray]:
-        """Reference implementation of :meth:`modalities` in plain numpy (same results)."""
+        """Reference implementation of :meth:`modalities` in plain numpy (same results).
+
+        Grid-agnostic: the grid's assignment gives sub-cells and (for the polar
+        grid, voxel-local) coordinates; everything after is the same.
+        """
         v = self.grid.n_voxels
         size = self.config.features.raster_size
         a = self.grid.assign(points, subdivisions=size)

@@ -12,7 +12,9 @@ Keys (all plain arrays or JSON strings):
 ``feature_scale``   (d,) standardisation divisor (1 where a feature never varied)
 ``lambda1/2``       the regularisation weights W was trained with
 ``w_modality``      (m,) modality importances, sum 1 (paper Fig. 4a)
-``w_voxel``         (v,) voxel importances, sum 1 (paper Fig. 4b)
+``w_voxel``         voxel importances, sum 1 (paper Fig. 4b): one per voxel of a
+                    Cartesian grid, one per (layer, ring) column of a polar grid
+                    (tied across sectors, ``FeatureLayout.weight_layout``)
 ``scenarios_json``  the c scenario names, column order of W
 ``metadata_json``   free-form training facts (scan count, objective, sources, ...)
 ==================  =============================================================
@@ -67,12 +69,12 @@ class VBRLModel:
                 f"{len(self.scenarios)} scenario names for {self.W.shape[1]} columns of W"
             )
         if self.w_modality is None or self.w_voxel is None:
-            self.w_modality, self.w_voxel = importance_weights(self.W, self.layout)
+            self.w_modality, self.w_voxel = importance_weights(self.W, self.layout.weight_layout)
         expected = {
             "feature_mean": (d,),
             "feature_scale": (d,),
             "w_modality": (self.layout.n_modalities,),
-            "w_voxel": (self.layout.n_voxels,),
+            "w_voxel": (self.layout.weight_layout.n_voxels,),
         }
         for name, shape in expected.items():
             value = np.asarray(getattr(self, name), dtype=np.float64)
@@ -93,7 +95,8 @@ class VBRLModel:
         return out.astype(np.float32)
 
     def row_weights(self) -> np.ndarray:
-        return row_weights(self.w_modality, self.w_voxel, self.layout)
+        """wM * wV per descriptor row; on a polar grid equal across the sectors of a column."""
+        return row_weights(self.w_modality, self.w_voxel, self.layout.weight_layout)
 
     def scorer(self, prune: float = 0.0) -> WeightedL1Scorer:
         """Eq. 4 scorer with this model's importances (lower distance = more similar)."""

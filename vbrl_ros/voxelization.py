@@ -3,11 +3,16 @@
 Voxel ``j`` is numbered layer-major: ``j = (layer * cells + iy) * cells + ix``,
 so ``j // cells**2`` is the bottom/middle/top layer and a layer's voxels
 reshape to a ``cells x cells`` image (row = y, column = x) seen from above.
+
+:func:`make_grid` picks this grid or the heading-robust
+:class:`~vbrl_ros.polar_grid.PolarVoxelGrid` from the configuration; both
+satisfy :class:`VoxelGrid`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -41,16 +46,50 @@ class VoxelAssignment:
         return int(np.count_nonzero(self.voxel < self.n_voxels))
 
 
+def layer_bands(config: VoxelGridConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(z_edges, slope, intercept): ``z * slope[layer] + intercept[layer]`` maps a layer's band
+    onto [layer, layer + 1), so layers may differ in height."""
+    edges = np.asarray(config.z_edges, dtype=np.float64)
+    heights = np.diff(edges)
+    return edges, 1.0 / heights, np.arange(config.n_layers) - edges[:-1] / heights
+
+
+class VoxelGrid(Protocol):
+    """What the featurizer and the reports need of a grid, Cartesian or polar."""
+
+    kind: str
+    config: VoxelGridConfig
+
+    @property
+    def n_voxels(self) -> int: ...
+
+    def voxel_layer(self) -> np.ndarray: ...
+
+    def voxel_centers(self) -> np.ndarray: ...
+
+    def assign(self, points: np.ndarray, subdivisions: int = 2) -> VoxelAssignment: ...
+
+
+def make_grid(config: VoxelGridConfig) -> VoxelGrid:
+    """The grid class ``config.kind`` names."""
+    if config.kind == "polar":
+        # imported here: polar_grid builds on this module's VoxelAssignment
+        from vbrl_ros.polar_grid import PolarVoxelGrid
+
+        return PolarVoxelGrid(config)
+    return CartesianVoxelGrid(config)
+
+
 class CartesianVoxelGrid:
     """Vectorised assignment of points to the voxels of a :class:`VoxelGridConfig`."""
 
+    kind = "cartesian"
+
     def __init__(self, config: VoxelGridConfig) -> None:
+        if config.kind != self.kind:
+            raise ValueError(f"CartesianVoxelGrid needs a cartesian grid config, got {config.kind!r}")
         self.config = config
-        self._z_edges = np.asarray(config.z_edges, dtype=np.float64)
-        # z -> z * slope[layer] + intercept[layer] maps a layer's band onto [layer, layer + 1)
-        heights = np.diff(self._z_edges)
-        self._z_slope = 1.0 / heights
-        self._z_intercept = np.arange(config.n_layers) - self._z_edges[:-1] / heights
+        self._z_edges, self._z_slope, self._z_intercept = layer_bands(config)
 
     @property
     def n_voxels(self) -> int:

@@ -120,3 +120,33 @@ def test_targets_places_labels_y_by_position(sources, tmp_path, monkeypatch, cap
     assert vbrl(monkeypatch, "train", *sources, "--out", out, "--targets", "places", "--cv", "2",
                 "--quiet") == 2
     assert "--targets places" in capsys.readouterr().err
+
+
+def test_polar_grid_is_trained_recorded_and_evaluated(sources, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "polar.npz"
+    assert vbrl(monkeypatch, "train", *sources, "--out", out, "--every", "3", "--quiet",
+                "--workers", "1", "--no-ablations", "--grid", "polar", "--rings", "4",
+                "--sectors", "8", "--max-range", "30") == 0
+    text = capsys.readouterr().out
+    model = load_model(out)
+    grid = model.config.grid
+    assert (grid.kind, grid.rings, grid.sectors, grid.max_range) == ("polar", 4, 8, 30.0)
+    assert model.w_voxel.shape == (4 * grid.n_layers,)
+    rows = model.layout.sector_rows
+    for values in (model.row_weights(), model.feature_scale):
+        np.testing.assert_array_equal(values[rows], np.broadcast_to(values[rows[0]], rows.shape))
+    assert "ring/layer columns" in text and (tmp_path / "polar.voxels.png").is_file()
+    # vbrl eval reads the grid from the model file
+    assert vbrl(monkeypatch, "eval", "--model", out, sources[1], "--against", sources[0],
+                "--every", "3", "--quiet", "--workers", "1", "--no-scan-context",
+                "--json", tmp_path / "eval.json") == 0
+    assert json.loads((tmp_path / "eval.json").read_text())
+
+
+def test_polar_options_need_the_polar_grid(sources, tmp_path, monkeypatch, capsys):
+    assert vbrl(monkeypatch, "train", *sources, "--out", tmp_path / "m.npz", "--rings", "4",
+                "--quiet") == 2
+    assert "--grid polar" in capsys.readouterr().err
+    assert vbrl(monkeypatch, "train", *sources, "--out", tmp_path / "m.npz", "--grid", "polar",
+                "--sectors", "1", "--quiet") == 2
+    assert "grid.sectors" in capsys.readouterr().err

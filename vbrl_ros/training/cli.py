@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vbrl_ros.config import VBRLConfig
+from vbrl_ros.config import GRID_KINDS, VBRLConfig, VoxelGridConfig
 from vbrl_ros.datasets import open_source
 from vbrl_ros.features import Featurizer
 from vbrl_ros.training import cv as cv_module
@@ -145,6 +145,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="modality group + row norm weight (0.1)")
     add_keyframe_arguments(parser)
     add_source_arguments(parser)
+    grid = parser.add_argument_group("voxel grid (recorded in the model file)")
+    grid.add_argument("--grid", choices=GRID_KINDS, default="cartesian",
+                      help="cartesian: the paper's grid, fixed to the sensor axes (default); "
+                           "polar: rings x sectors, robust to the heading of a revisit")
+    grid.add_argument("--rings", type=int, metavar="N",
+                      help=f"polar: rings over [0, --max-range) ({VoxelGridConfig.rings})")
+    grid.add_argument("--sectors", type=int, metavar="N",
+                      help=f"polar: angular sectors ({VoxelGridConfig.sectors})")
+    grid.add_argument("--max-range", type=float, metavar="M",
+                      help=f"polar: grid radius in metres ({VoxelGridConfig.max_range:g})")
     parser.add_argument("--ablations", action=argparse.BooleanOptionalAction, default=True,
                         help="also write MODEL.concatenation/voxel-only/modality-only.npz (default: on)")
     cv = parser.add_argument_group("cross-validation of (λ1, λ2)")
@@ -186,13 +196,26 @@ def _summary(result: TrainingResult) -> str:
             f"{result.seconds:.1f} s")
 
 
+def grid_config(args: argparse.Namespace) -> VBRLConfig:
+    """The configuration --grid/--rings/--sectors/--max-range ask for (paper defaults otherwise)."""
+    polar = {name: value for name, value in (("rings", args.rings), ("sectors", args.sectors),
+                                             ("max_range", args.max_range)) if value is not None}
+    if args.grid != "polar":
+        if polar:
+            raise ValueError(f"--{'/--'.join(k.replace('_', '-') for k in polar)} only apply to "
+                             "--grid polar")
+        return VBRLConfig()
+    return VBRLConfig(grid=VoxelGridConfig(kind="polar", **polar))
+
+
 def run(args: argparse.Namespace) -> int:
     if args.lambda1 < 0 or args.lambda2 < 0:
         raise ValueError("--lambda1 and --lambda2 must be >= 0")
     if args.max_memory_gb <= 0:
         raise ValueError("--max-memory-gb must be positive")
-    config = VBRLConfig()
-    d = Featurizer(config).dimension
+    config = grid_config(args)
+    layout = Featurizer(config).layout
+    d = layout.dimension
     names = source_labels(args.sources, args.labels.split(",") if args.labels else None)
     stream, counted = _should_stream(args, d)
     base_meta = {"sources": [str(p) for p in args.sources], "labels": names}
@@ -212,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
             keyframe_distance=args.keyframe_distance, every=args.every, workers=args.workers,
             progress=not args.quiet,
         )
-        standardized = moments.standardized()
+        standardized = moments.standardized(layout.tie_of_row)
         scenario_names = info.scenario_names
 
         def fit(l1: float, l2: float, meta: dict) -> TrainingResult:

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from vbrl_ros.config import VBRLConfig
-from vbrl_ros.features import Featurizer
+from vbrl_ros.features import FeatureLayout, Featurizer
 from vbrl_ros.model import VBRLModel
 from vbrl_ros.solver import RowGroups, SolverResult, solve_vbrl
 
@@ -26,13 +26,52 @@ class TrainingResult:
     seconds: float
 
 
-def standardization(descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-feature mean and scale (standard deviation, 1 where a feature is constant)."""
+def standardization(
+    descriptors: np.ndarray, tie_of_row: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-feature mean and scale (standard deviation, 1 where a feature is constant).
+
+    ``tie_of_row`` (``FeatureLayout.tie_of_row``) pools both over each tie
+    class — on a polar grid, one feature in every sector — so all sectors share
+    one standardisation; else a comparison under a sector shift would mix scales.
+    """
     X = np.asarray(descriptors, dtype=np.float64)
     mean = X.mean(axis=0)
-    scale = X.std(axis=0)
+    if tie_of_row is None or _untied(tie_of_row):
+        scale = X.std(axis=0)
+    else:
+        mean, var = pool_tied(mean, X.var(axis=0), tie_of_row)
+        scale = np.sqrt(var)
     scale[scale < MIN_FEATURE_SCALE] = 1.0
     return mean, scale
+
+
+def _untied(tie_of_row: np.ndarray) -> bool:
+    """Every row its own class (a Cartesian grid): nothing to pool."""
+    return len(np.unique(tie_of_row)) == len(tie_of_row)
+
+
+def pool_tied(mean: np.ndarray, var: np.ndarray,
+              tie_of_row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-row mean and variance (over the same scans) -> those of each row's tie class, per row.
+
+    Every row of a class has the same scan count, so the class mean is the mean
+    of the row means and the class variance the mean of ``var + (mean - class
+    mean)²`` (law of total variance). Untied rows come back unchanged.
+    """
+    tie = np.asarray(tie_of_row, dtype=np.intp)
+    if _untied(tie):
+        return mean, var
+    size = np.bincount(tie).astype(np.float64)
+    class_mean = np.bincount(tie, weights=mean) / size
+    spread = var + (mean - class_mean[tie]) ** 2
+    return class_mean[tie], (np.bincount(tie, weights=spread) / size)[tie]
+
+
+def row_groups(layout: FeatureLayout) -> RowGroups:
+    """The solver's sparsity groups: voxels, or (layer, ring) columns tied across polar sectors."""
+    tied = layout.weight_layout
+    return RowGroups(voxel_of_row=tied.voxel_of_row, modality_of_row=tied.modality_of_row)
 
 
 def one_hot(labels: Sequence[int] | np.ndarray, n_classes: int) -> np.ndarray:
@@ -76,9 +115,9 @@ def fit_model(
         raise ValueError(f"{len(Y)} labels for {len(descriptors)} descriptors")
 
     start = time.perf_counter()
-    mean, scale = standardization(descriptors)
+    mean, scale = standardization(descriptors, layout.tie_of_row)
     X = ((descriptors - mean) / scale).T  # (d, n), one column per scan as in the paper
-    groups = RowGroups(voxel_of_row=layout.voxel_of_row, modality_of_row=layout.modality_of_row)
+    groups = row_groups(layout)
     result = solve_vbrl(X, Y, groups, lambda1=lambda1, lambda2=lambda2, tol=tol, max_iter=max_iter)
     seconds = time.perf_counter() - start
     info = {

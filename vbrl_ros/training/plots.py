@@ -3,6 +3,8 @@
 - ``MODEL.modalities.png``: share of each feature modality (pie and bar);
 - ``MODEL.voxels.png``: voxel importance per height layer, seen from above,
   sensor frame with the sensor at the centre (x right, y up), one colour scale;
+  on a polar grid one polar map per layer: concentric rings, since the
+  importances are tied across sectors;
 - ``MODEL.layers.png``: bottom / middle / top layer shares.
 
 Uses matplotlib's object API with the Agg canvas directly (no pyplot), so the
@@ -63,6 +65,8 @@ def plot_voxels(model: VBRLModel, path: str | Path, dpi: int = 120) -> Path:
     reshape gives [layer, y, x]; ``origin="lower"`` puts +y up and +x right.
     """
     grid = model.config.grid
+    if grid.kind == "polar":
+        return _plot_rings(model, path, dpi)
     c, e = grid.cells_xy, grid.extent_xy
     maps = 100.0 * model.w_voxel.reshape(grid.n_layers, c, c)
     names = layer_names(grid.n_layers)
@@ -82,6 +86,36 @@ def plot_voxels(model: VBRLModel, path: str | Path, dpi: int = 120) -> Path:
             ax.legend(loc="upper left", fontsize="small")
     fig.colorbar(image, ax=axes, label="voxel share (%)", shrink=0.85)
     fig.suptitle("voxel importance, seen from above (sensor frame)")
+    return _save(fig, path, dpi)
+
+
+def _plot_rings(model: VBRLModel, path: str | Path, dpi: int) -> Path:
+    """Polar grid: per layer, the (layer, ring) column importances as annuli around the sensor.
+
+    Column = layer * rings + ring (FeatureLayout.weight_layout), so a reshape
+    gives [layer, ring]. Angle 0 is +x (forward), counter-clockwise.
+    """
+    grid = model.config.grid
+    maps = 100.0 * model.w_voxel.reshape(grid.n_layers, grid.rings)
+    names = layer_names(grid.n_layers)
+    radii = np.arange(grid.rings + 1) * grid.ring_width
+    theta = np.linspace(0.0, 2.0 * np.pi, max(4 * grid.sectors, 96) + 1)  # smooth circles
+    fig = _figure(4.2 * grid.n_layers + 1.0, 4.4)
+    axes = [fig.add_subplot(1, grid.n_layers, k + 1, projection="polar")
+            for k in range(grid.n_layers)]
+    vmax = max(float(maps.max()), 1e-12)  # one colour scale: layers are comparable
+    for k, ax in enumerate(axes):
+        values = np.repeat(maps[k][:, None], len(theta) - 1, axis=1)  # (rings, angles)
+        mesh = ax.pcolormesh(theta, radii, values, cmap="viridis", vmin=0.0, vmax=vmax,
+                             shading="flat")
+        ax.set_xticks(np.arange(grid.sectors) * 2.0 * np.pi / grid.sectors, [])  # sector edges
+        ax.set_ylim(0.0, radii[-1])
+        ax.grid(True, color="white", alpha=0.4)
+        lo, hi = grid.z_edges[k], grid.z_edges[k + 1]
+        ax.set_title(f"{names[k]}: z ∈ [{lo:g}, {hi:g}) m, {maps[k].sum():.1f} %", pad=12)
+    fig.colorbar(mesh, ax=axes, label="ring share (%), same in every sector", shrink=0.85)
+    fig.suptitle(f"ring importance, seen from above ({grid.rings} rings to {grid.max_range:g} m, "
+                 f"{grid.sectors} sectors, 0° = +x forward)")
     return _save(fig, path, dpi)
 
 

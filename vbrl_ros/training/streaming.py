@@ -19,6 +19,13 @@ round-off: the subtraction cancels ~|μ|²/scale² of the relative precision, i.
 then runs on the Gram path ((G + Λ)W = B, d×d solves). Memory: one d×d float64
 matrix (0.5 GB at d = 7872) plus one chunk, whatever n is. The same moments
 serve every (λ1, λ2): the ablations cost one solve each, no second pass.
+
+With tie classes (polar grid: one feature in every sector), μ and scale are
+pooled per class (:func:`~vbrl_ros.training.fit.pool_tied`), so μ ≠ m = s/n and
+
+    G_std = S⁻¹ (G_raw − n m mᵀ + n (m − μ)(m − μ)ᵀ) S⁻¹
+
+(the expansion of Σ (x − μ)(x − μ)ᵀ); B_std keeps its form.
 """
 
 from __future__ import annotations
@@ -37,8 +44,8 @@ from vbrl_ros.config import VBRLConfig
 from vbrl_ros.datasets import open_source
 from vbrl_ros.features import Featurizer
 from vbrl_ros.model import VBRLModel
-from vbrl_ros.solver import GramAccumulator, GramStats, RowGroups, solve_vbrl
-from vbrl_ros.training.fit import MIN_FEATURE_SCALE, TrainingResult
+from vbrl_ros.solver import GramAccumulator, GramStats, solve_vbrl
+from vbrl_ros.training.fit import MIN_FEATURE_SCALE, TrainingResult, pool_tied, row_groups
 from vbrl_ros.training.keyframes import (
     _bounded_map,
     _describe_in_worker,
@@ -76,19 +83,30 @@ class RawMoments:
         self.column_sum += X.sum(axis=0)
         self.label_count += Y.sum(axis=0)
 
-    def standardized(self) -> tuple[GramStats, np.ndarray, np.ndarray]:
-        """(Gram statistics of the standardised data, feature mean, feature scale)."""
+    def standardized(
+        self, tie_of_row: np.ndarray | None = None
+    ) -> tuple[GramStats, np.ndarray, np.ndarray]:
+        """(Gram statistics of the standardised data, feature mean, feature scale).
+
+        ``tie_of_row``: pool mean and scale per tie class, as ``fit.standardization``.
+        """
         n = self.n
         if n < 2:
             raise ValueError(f"training needs at least 2 scans, got {n}")
         raw = self.gram.stats()
-        mean = self.column_sum / n
-        var = np.maximum(np.diag(raw.G) / n - mean * mean, 0.0)  # clip round-off below 0
+        row_mean = self.column_sum / n
+        var = np.maximum(np.diag(raw.G) / n - row_mean * row_mean, 0.0)  # clip round-off below 0
+        mean = row_mean
+        if tie_of_row is not None:
+            mean, var = pool_tied(row_mean, var, tie_of_row)
         scale = np.sqrt(var)
         scale[scale < MIN_FEATURE_SCALE] = 1.0  # same rule as fit.standardization
         inv = 1.0 / scale
         G = raw.G  # a fresh copy from stats(): update in place, one d×d buffer
-        G -= n * np.outer(mean, mean)
+        G -= n * np.outer(row_mean, row_mean)
+        if mean is not row_mean:  # pooled: centre on the class mean instead (module docstring)
+            shift = row_mean - mean
+            G += n * np.outer(shift, shift)
         G *= inv[:, None]
         G *= inv[None, :]
         B = (raw.B - np.outer(mean, self.label_count)) * inv[:, None]
@@ -113,11 +131,10 @@ def fit_from_moments(
     """
     start = time.perf_counter()
     layout = Featurizer(config).layout
-    stats, mean, scale = standardized or moments.standardized()
+    stats, mean, scale = standardized or moments.standardized(layout.tie_of_row)
     if stats.G.shape[0] != layout.dimension:
         raise ValueError(f"moments have d={stats.G.shape[0]}, the configuration needs {layout.dimension}")
-    groups = RowGroups(voxel_of_row=layout.voxel_of_row, modality_of_row=layout.modality_of_row)
-    result = solve_vbrl(groups=groups, gram=stats, lambda1=lambda1, lambda2=lambda2, tol=tol,
+    result = solve_vbrl(groups=row_groups(layout), gram=stats, lambda1=lambda1, lambda2=lambda2, tol=tol,
                         max_iter=max_iter)
     seconds = time.perf_counter() - start
     info = {
