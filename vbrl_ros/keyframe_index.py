@@ -1,83 +1,105 @@
-"""Fast nearest-keyframe search for the Eq. 4 distance (weighted L1): key filter + exact re-rank.
+"""Fast nearest-keyframe search for the rotation-minimised Eq. 4 distance: keys + exact re-rank.
 
-Eq. 4 on compact descriptors is ``D(a, b) = sum_r w_r |a_r - b_r| = ||w*a - w*b||_1``
-(**lower = more similar**). A linear scan over N keyframes x d rows (d up to
-7872) costs ~N*d; at N = 100k that is 3 GB of memory traffic per query. This
-index keeps, next to every descriptor, a small *key* and searches in two stages:
+A compact descriptor is sector-major, ``x.reshape(S, R)`` (S sectors of a
+polar grid, S = 1 for the Cartesian grid), with column weights ``w`` (R,)
+tied across sectors. The distance is (**lower = more similar**)
 
-1. **Candidate generation** over the keys. The active rows are split at random
-   (seeded) into ``key_dim`` groups; key_j = sum over the group's rows of
-   ``sign_r * w_r * x_r`` with random signs. Because the groups partition the
-   rows, ``||key(a) - key(b)||_1 <= D(a, b)`` (a lower bound), and on real
-   VBRL descriptors the L1 key distance ranks the true nearest keyframe among
-   the first few (see ``test/test_keyframe_index.py``); it ranks much better
-   than Gaussian projections compared in L2. Keys are quantised to int8 with
-   a fixed scale derived from the weights (so no training step, inserts are
-   O(d) and the index never needs rebuilding) and scanned by a compiled
-   single-threaded kernel: 256 bytes per keyframe, ~25 MB at 100k keyframes.
-2. **Exact re-ranking** of the ``candidates`` best keys with Eq. 4 on the
-   stored descriptors, in float32 (equal to
-   :meth:`vbrl_ros.scoring.WeightedL1Scorer.distances_compact` up to float32
-   summation order, ~1e-6 relative). The result is
-   therefore exact whenever the true nearest keyframe is among the candidates.
+    D(q, t) = min_k D_k(q, t),   D_k = sum_s sum_r w_r |q[(s + k) % S, r] - t[s, r]|
 
-The key scan is linear in N but ~30x cheaper per keyframe than the full
-distance (256 int8 vs 7872 float32). At 100k keyframes query + insert
-measured 9.8 ms median (p95 10.1 ms) on one core, right at the 10 ms target
-(``python -m vbrl_ros.index_bench``); fusing the mask and the top-C selection
-into the key scan is the known next saving. Beyond ~1M keyframes a coarse
-partition over the keys (IVF) would be the next step.
+and the best ``k`` gives the yaw (see :class:`SearchResult`). A linear scan
+costs N * S * d per query (seconds at 100k polar keyframes). Next to every
+descriptor the index keeps two small keys and searches in three stages:
+
+1. **Candidates** from a rotation-invariant key: each column summed over the
+   sectors, ``c_r = sum_s x[s, r]``, the columns split at random (seeded) into
+   ``key_dim`` groups, key_j = sum over the group of ``sign_r w_r c_r`` (random
+   signs). By the triangle inequality ``||key(a) - key(b)||_1 <= D_k(a, b)`` for
+   every shift k: a lower bound whatever the heading. int8 with a fixed scale
+   from the weights (no training, O(d) inserts, never a rebuild), scanned at
+   memory speed keeping the ``candidates`` best (:mod:`vbrl_ros.index_keys`).
+2. **Yaw keys** (S > 1). Re-ranking C candidates at all S shifts costs
+   C * S * d, and summing over sectors discards where things are around the
+   sensor, so the invariant key is coarse. A per-sector yaw key — ``yaw_dim``
+   signed group sums per sector, (S, yaw_dim) float32 — bounds every D_k from
+   below too; compared under all S shifts (S * S * yaw_dim per candidate) it
+   keeps the ``rerank`` candidates with the smallest bound and, for each, its
+   ``yaw_shifts`` most promising shifts.
+3. **Exact re-rank**: D_k at those shifts, in float32, with the same compiled
+   sums as :meth:`KeyframeIndex.exact_search` (:mod:`vbrl_ros.weighted_l1_kernels`),
+   so a keyframe's distance is bitwise the same in both. The result equals
+   brute force whenever the true nearest keyframe survives stages 1 and 2
+   with its best shift.
 
 Exclusion: ``allowed`` is ``None``, a boolean mask over the stored keyframes
-(``True`` = may be returned; applied before candidate selection, so it is
-exact), or a callable taking an int64 array of indices and returning a
-boolean mask of the same length (applied to an enlarged candidate list; when
-fewer than ``top_k`` survive it is evaluated on every keyframe instead).
-
-Persistence: :meth:`KeyframeIndex.state` returns plain arrays (no pickle) for
-an ``.npz``; :meth:`KeyframeIndex.from_state` validates and restores them.
+(``True`` = may be returned; applied inside the key scan, so it is exact) or a
+callable returning that mask for an int64 array of every index.
+Persistence: :meth:`KeyframeIndex.state` / :meth:`KeyframeIndex.from_state`
+(plain arrays, no pickle; :mod:`vbrl_ros.keyframe_index_state`). Speed and
+recall: ``vbrl bench`` (:mod:`vbrl_ros.index_bench`).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from numba import njit
 
-INDEX_FORMAT = "vbrl_ros.keyframe_index"
-INDEX_FORMAT_VERSION = 1
+from vbrl_ros import index_keys as kk
+from vbrl_ros import weighted_l1_kernels as wk
+from vbrl_ros.keyframe_index_state import (  # noqa: F401 - re-exported
+    INDEX_FORMAT,
+    INDEX_FORMAT_VERSION,
+    index_from_state,
+    index_state,
+)
+from vbrl_ros.sector_shift import refined_yaw, yaw_of_shift
+
 _INITIAL_CAPACITY = 64
-_BLOCK_ELEMENTS = 4 * 1024 * 1024  # bound of one brute-force temporary (float32 elements)
-_EXCLUDED = np.iinfo(np.int32).max
+_BATCH_ROWS = 4096  # keys of a bulk insert are computed in chunks of this many rows
 _STORAGE = {"float32": np.float32, "float16": np.float16}
+_FLOAT16_MAX = 65504.0
 
 Allowed = Callable[[np.ndarray], np.ndarray] | np.ndarray | None
 
 
-@njit(cache=True, nogil=True)
-def _key_l1(keys: np.ndarray, query: np.ndarray, n: int, out: np.ndarray) -> None:
-    """out[i] = sum_j |keys[i, j] - query[j]| for the first n rows (int8 keys, int32 sums)."""
-    k = keys.shape[1]
-    for i in range(n):
-        total = np.int32(0)
-        for j in range(k):
-            diff = np.int32(keys[i, j]) - np.int32(query[j])
-            total += diff if diff >= 0 else -diff
-        out[i] = total
+@dataclass(frozen=True)
+class SearchResult:
+    """Nearest keyframes, distance ascending (ties: insertion order).
+
+    ``distances``: rotation-minimised Eq. 4, lower = more similar.
+    ``shifts``: the best sector shift k of each match (0 when S = 1).
+    ``yaws``: radians in (-pi, pi], ``k * 2 pi / S`` (plus the parabola
+    refinement if enabled): **the query scan is the match's scan rotated by
+    +yaw about z** (counter-clockwise), i.e. ``T_query_match`` has this yaw —
+    the seed for geometric verification. 0 for the Cartesian grid.
+    """
+
+    indices: np.ndarray  # int64
+    distances: np.ndarray  # float64
+    shifts: np.ndarray  # int64
+    yaws: np.ndarray  # float64
 
 
-@njit(cache=True, nogil=True, fastmath=True)
-def _weighted_l1(templates: np.ndarray, rows: np.ndarray, query: np.ndarray,
-                 weights: np.ndarray, out: np.ndarray) -> None:
-    """out[i] = sum_j weights[j] |templates[rows[i], j] - query[j]| (float32, Eq. 4)."""
-    d = templates.shape[1]
-    for i in range(len(rows)):
-        row = rows[i]
-        total = np.float32(0.0)
-        for j in range(d):
-            total += weights[j] * abs(templates[row, j] - query[j])
-        out[i] = total
+def default_parameters(width: int, sectors: int) -> dict[str, int]:
+    """Defaults for R = ``width`` active columns and S sectors, tuned with ``vbrl bench``.
+
+    Query + insert <= 10 ms at 100k keyframes on one core for the Cartesian
+    (S = 1, d ~ 7.9k: key scan ~3.5 ms + ~6 us per candidate) and polar
+    (S = 24, d ~ 15.7k: key scan ~3.5 ms, yaw keys ~2.2 us per candidate,
+    exact ~3.5 us per re-ranked shift) shapes, spending the rest of the budget
+    on candidates, which is what recall on cross-season queries needs most.
+    """
+    polar = sectors > 1
+    return {
+        "key_dim": min(kk.MAX_KEY_DIM, width),
+        "candidates": 1024 if polar else 512,
+        "rerank": 128 if polar else 512,
+        "yaw_dim": min(width, 32) if polar else 0,
+        "yaw_shifts": min(sectors, 2),
+    }
 
 
 def _grown(array: np.ndarray, needed: int) -> np.ndarray:
@@ -89,23 +111,40 @@ def _grown(array: np.ndarray, needed: int) -> np.ndarray:
     return out
 
 
+def _positive_int(name: str, value: object, low: int, high: int) -> int:
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or not low <= value <= high:
+        raise ValueError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
+    return int(value)
+
+
 class KeyframeIndex:
-    """Weighted-L1 (Eq. 4) nearest-keyframe index; distances: lower = more similar.
+    """Rotation-minimised Eq. 4 nearest-keyframe index; distances: lower = more similar.
 
     ``weights``: the scorer's active weights (``WeightedL1Scorer.active_weights``),
-    one per compact descriptor row. ``key_dim``: groups in the key (256 bytes per
-    keyframe at 256). ``candidates``: keys re-ranked exactly per query.
-    ``storage``: ``"float32"`` (re-rank equals the scorer up to rounding) or
-    ``"float16"`` (half the memory; distances from rounded descriptors).
-    ``key_clip_sigma``: int8 range in standard deviations of a key entry,
-    assuming unit-variance (standardised) features.
+    one per compact row, sector-major and equal across sectors. ``sectors``: S.
+    ``key_dim``: candidate-key bytes per keyframe (<= 256). ``candidates``:
+    keyframes kept by the key scan. ``rerank`` (S > 1; S = 1 re-ranks all
+    candidates): keyframes kept by the yaw keys and scored exactly at their
+    ``yaw_shifts`` best shifts. ``yaw_dim``: yaw-key groups per sector
+    (S * yaw_dim float32 per keyframe; 0 when S = 1). ``yaw_refine``: refine the
+    yaw of the returned keyframes by a parabola through D at k - 1, k, k + 1
+    (two more distances each; the distance itself stays that of shift k).
+    ``None`` picks :func:`default_parameters`. ``storage``: ``"float32"`` or
+    ``"float16"`` (half the memory; distances from the rounded descriptors).
+    ``key_clip_sigma``: see :class:`~vbrl_ros.index_keys.KeyCodec`.
     """
 
     def __init__(
         self,
         weights: np.ndarray,
-        key_dim: int = 256,
-        candidates: int = 128,
+        *,
+        sectors: int = 1,
+        key_dim: int | None = None,
+        candidates: int | None = None,
+        rerank: int | None = None,
+        yaw_dim: int | None = None,
+        yaw_shifts: int | None = None,
+        yaw_refine: bool = False,
         seed: int = 0,
         storage: str = "float32",
         key_clip_sigma: float = 4.0,
@@ -115,44 +154,77 @@ class KeyframeIndex:
             raise ValueError("weights must be a non-empty 1-D array (the scorer's active weights)")
         if not np.all(np.isfinite(weights)) or np.any(weights < 0):
             raise ValueError("weights must be finite and non-negative")
-        if not isinstance(key_dim, (int, np.integer)) or not 1 <= key_dim <= len(weights):
-            raise ValueError(f"key_dim must be an integer in [1, {len(weights)}], got {key_dim!r}")
-        if not isinstance(candidates, (int, np.integer)) or candidates < 1:
-            raise ValueError(f"candidates must be a positive integer, got {candidates!r}")
+        sectors = _positive_int("sectors", sectors, 1, len(weights))
+        if len(weights) % sectors:
+            raise ValueError(f"{len(weights)} weights do not split into {sectors} sectors")
+        tied = weights.reshape(sectors, -1)
+        if np.any(tied != tied[0]):
+            raise ValueError("weights must be equal across sectors (tied) for every column")
+        width = tied.shape[1]
+        defaults = default_parameters(width, sectors)
+        pick = lambda value, name: defaults[name] if value is None else value  # noqa: E731
+        self.key_dim = _positive_int("key_dim", pick(key_dim, "key_dim"), 1,
+                                     min(width, kk.MAX_KEY_DIM))
+        self.candidates = _positive_int("candidates", pick(candidates, "candidates"), 1, 2**31 - 1)
+        self.rerank = _positive_int("rerank", pick(rerank, "rerank"), 1, 2**31 - 1)
+        low = 1 if sectors > 1 else 0
+        self.yaw_dim = _positive_int("yaw_dim", pick(yaw_dim, "yaw_dim"), low,
+                                     width if sectors > 1 else 0)
+        self.yaw_shifts = _positive_int("yaw_shifts", pick(yaw_shifts, "yaw_shifts"), 1, sectors)
         if storage not in _STORAGE:
             raise ValueError(f"storage must be one of {sorted(_STORAGE)}, got {storage!r}")
         if not key_clip_sigma > 0:
             raise ValueError(f"key_clip_sigma must be positive, got {key_clip_sigma!r}")
         self.weights = weights
-        self.dimension = len(weights)
-        self.key_dim = int(key_dim)
-        self.candidates = int(candidates)
+        self.column_weights = np.ascontiguousarray(tied[0])
+        self.sectors, self.width, self.dimension = sectors, width, len(weights)
+        self.sector_angle = 2.0 * math.pi / sectors
+        self.yaw_refine = bool(yaw_refine)
         self.seed = int(seed)
         self.storage = storage
         self.key_clip_sigma = float(key_clip_sigma)
-        rng = np.random.default_rng([self.seed, 0x1DE7])
-        # balanced random partition of the rows into key_dim groups, random signs
-        self._group = rng.permutation(np.arange(self.dimension) % self.key_dim).astype(np.int64)
-        signs = rng.integers(0, 2, self.dimension) * 2 - 1
-        self._signed_weights = (signs * weights.astype(np.float64)).astype(np.float32)
-        sigma = np.sqrt(np.bincount(self._group, weights=weights.astype(np.float64) ** 2,
-                                    minlength=self.key_dim))
-        scale = self.key_clip_sigma * float(sigma.max()) / 127.0
-        self._key_scale = scale if scale > 0 else 1.0
-        self._projection: np.ndarray | None = None  # dense (d, key_dim), built for batches
+
+        self._codec = kk.KeyCodec(self.column_weights, sectors, self.key_dim, self.yaw_dim,
+                                  self.seed, self.key_clip_sigma)
         self._size = 0
         self._descriptors = np.empty((_INITIAL_CAPACITY, self.dimension), _STORAGE[storage])
-        self._keys = np.empty((_INITIAL_CAPACITY, self.key_dim), np.int8)
-        self._scratch = np.empty(_INITIAL_CAPACITY, np.int32)
+        self._key_blocks = np.empty((1, self.key_dim, kk.BLOCK), np.uint8)
+        self._yaw_keys = np.empty((_INITIAL_CAPACITY, sectors, self.yaw_dim), np.float32)
+
+    def options(self) -> dict[str, Any]:
+        """Constructor keywords that rebuild an index with the same parameters (no data)."""
+        names = ("sectors", "key_dim", "candidates", "rerank", "yaw_dim", "yaw_shifts",
+                 "yaw_refine", "seed", "storage", "key_clip_sigma")
+        return {name: getattr(self, name) for name in names}
+
+    def empty_like(self) -> KeyframeIndex:
+        """A new, empty index with the same weights and parameters."""
+        return type(self)(self.weights, **self.options())
 
     # -- size and memory ------------------------------------------------------
 
     def __len__(self) -> int:
         return self._size
 
+    def bytes_breakdown(self) -> dict[str, int]:
+        """Per-keyframe bytes of the descriptor (d x 4 or 2), the int8 key and the yaw key."""
+        return {"descriptor": self.dimension * np.dtype(_STORAGE[self.storage]).itemsize,
+                "key": self.key_dim, "yaw_key": 4 * self.sectors * self.yaw_dim}
+
     def bytes_per_keyframe(self) -> int:
-        """Stored descriptor (d x 4 or 2 bytes) + int8 key; excludes growth slack."""
-        return self.dimension * np.dtype(_STORAGE[self.storage]).itemsize + self.key_dim
+        """Descriptor + keys per keyframe; excludes growth slack."""
+        return sum(self.bytes_breakdown().values())
+
+    def reserve(self, capacity: int) -> None:
+        """Pre-allocate room for ``capacity`` keyframes (avoids doubling copies in bulk loads)."""
+        self._reserve(int(capacity))
+
+    def _reserve(self, needed: int) -> None:
+        self._descriptors = _grown(self._descriptors, needed)
+        self._yaw_keys = _grown(self._yaw_keys, needed)
+        self._key_blocks = _grown(self._key_blocks, -(-needed // kk.BLOCK))
+
+    # -- reading --------------------------------------------------------------
 
     def descriptors(self) -> np.ndarray:
         """Read-only view of the stored descriptors (n, d) in the storage dtype."""
@@ -160,223 +232,189 @@ class KeyframeIndex:
         view.flags.writeable = False
         return view
 
+    def descriptor(self, index: int) -> np.ndarray:
+        """A copy of stored descriptor ``index`` as float32 (as stored: float16-rounded if so)."""
+        if not -self._size <= index < self._size:
+            raise IndexError(f"keyframe index {index} out of range for {self._size} keyframes")
+        return self._descriptors[index % self._size].astype(np.float32)
+
     # -- keys -------------------------------------------------------------------
 
+    def raw_keys(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Unquantised (candidate keys (n, key_dim), yaw keys (n, S, yaw_dim)) of (n, d).
+
+        Their L1 distances (the yaw key's under a circular shift of its first
+        axis) are lower bounds of D_k for every shift k.
+        """
+        x = np.ascontiguousarray(descriptors, dtype=np.float32).reshape(-1, self.dimension)
+        return self._codec.raw(x)
+
     def keys(self, descriptors: np.ndarray) -> np.ndarray:
-        """int8 keys (n, key_dim) or (key_dim,) of compact descriptors."""
-        x = np.asarray(descriptors, dtype=np.float32)
-        if x.ndim == 1:
-            raw = np.bincount(self._group, weights=x * self._signed_weights, minlength=self.key_dim)
-        else:
-            if self._projection is None:
-                p = np.zeros((self.dimension, self.key_dim), np.float32)
-                p[np.arange(self.dimension), self._group] = self._signed_weights
-                self._projection = p
-            raw = x @ self._projection
-        return np.clip(np.rint(raw / self._key_scale), -127, 127).astype(np.int8)
+        """int8 candidate keys (n, key_dim) or (key_dim,) of compact descriptors."""
+        x = np.asarray(descriptors)
+        quantised = self._codec.quantised(self.raw_keys(x)[0]).astype(np.int16) - 128
+        return quantised.astype(np.int8).reshape(*x.shape[:-1], self.key_dim)
+
+    def stored_keys(self) -> np.ndarray:
+        """The stored int8 candidate keys (n, key_dim), row-major."""
+        n = self._size
+        rows = self._key_blocks.transpose(0, 2, 1).reshape(-1, self.key_dim)[:n]
+        return (rows.astype(np.int16) - 128).astype(np.int8)
 
     # -- writing ----------------------------------------------------------------
 
-    def _check(self, descriptors: np.ndarray, ndim: int) -> np.ndarray:
-        x = np.asarray(descriptors, dtype=np.float32)
+    def check(self, descriptors: np.ndarray, ndim: int = 1) -> np.ndarray:
+        """float32 (d,) or (n, d) compact descriptor(s), or ``ValueError`` naming the problem."""
+        # aligned + contiguous: numba compiles unaligned views (e.g. from an .npz) to scalar code
+        x = np.require(descriptors, np.float32, ["C", "A"])
         if x.ndim != ndim or x.shape[-1] != self.dimension:
             what = "(d,)" if ndim == 1 else "(n, d)"
             raise ValueError(
-                f"descriptor(s) must have shape {what} with d = {self.dimension} compact rows, "
-                f"got {x.shape}"
+                f"compact descriptor(s) must have shape {what} with d = {self.dimension} active "
+                f"rows, got {x.shape} (pass scorer.compact(descriptor))"
             )
         if not np.all(np.isfinite(x)):
             raise ValueError("descriptor contains NaN or inf")
+        if self.storage == "float16" and x.size and float(np.abs(x).max()) > _FLOAT16_MAX:
+            raise ValueError("descriptor exceeds the float16 range; use storage='float32'")
         return x
-
-    def reserve(self, capacity: int) -> None:
-        """Pre-allocate room for ``capacity`` keyframes (avoids doubling copies in bulk loads)."""
-        self._reserve(int(capacity))
-
-    def nbytes(self) -> int:
-        """Bytes currently allocated by the index (including growth slack)."""
-        return self._descriptors.nbytes + self._keys.nbytes + self._scratch.nbytes
-
-    def _reserve(self, needed: int) -> None:
-        self._descriptors = _grown(self._descriptors, needed)
-        self._keys = _grown(self._keys, needed)
-        if len(self._scratch) < len(self._keys):
-            self._scratch = np.empty(len(self._keys), np.int32)
 
     def add(self, descriptor_compact: np.ndarray) -> int:
         """Insert one compact descriptor; returns its index (insertion order, from 0). O(d) amortised."""
-        x = self._check(descriptor_compact, 1)
-        n = self._size
-        self._reserve(n + 1)
-        self._descriptors[n] = x
-        self._keys[n] = self.keys(x)
-        self._size = n + 1
-        return n
+        return int(self.add_batch(self.check(descriptor_compact)[None])[0])
 
     def add_batch(self, descriptors_compact: np.ndarray) -> np.ndarray:
         """Insert (m, d) descriptors; returns their indices."""
-        x = self._check(descriptors_compact, 2)
+        x = self.check(descriptors_compact, 2)
         n, m = self._size, len(x)
         self._reserve(n + m)
-        block = max(1, _BLOCK_ELEMENTS // self.dimension)
-        for start in range(0, m, block):
-            stop = min(start + block, m)
-            self._descriptors[n + start : n + stop] = x[start:stop]
-            self._keys[n + start : n + stop] = self.keys(x[start:stop])
+        for start in range(0, m, _BATCH_ROWS):
+            chunk = np.ascontiguousarray(x[start : start + _BATCH_ROWS])
+            rows = np.arange(n + start, n + start + len(chunk))
+            stored = self._descriptors[rows[0] : rows[-1] + 1]
+            stored[:] = chunk
+            if self.storage != "float32":  # keys of the values as stored (bounds stay valid)
+                chunk = stored.astype(np.float32)
+            keys, self._yaw_keys[rows[0] : rows[-1] + 1] = self.raw_keys(chunk)
+            self._key_blocks[rows // kk.BLOCK, :, rows % kk.BLOCK] = self._codec.quantised(keys)
         self._size = n + m
         return np.arange(n, n + m, dtype=np.int64)
 
     # -- searching --------------------------------------------------------------
 
-    def _exact(self, query: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """Eq. 4 distances to the stored descriptors ``rows``, as WeightedL1Scorer computes them."""
-        out = np.empty(len(rows), np.float32)
-        if self._descriptors.dtype == np.float32:
-            _weighted_l1(self._descriptors, rows, query, self.weights, out)
-        else:  # float16 storage: widen the gathered rows (numba has no float16 arithmetic)
-            block = max(1, _BLOCK_ELEMENTS // self.dimension)
-            for start in range(0, len(rows), block):
-                chunk = self._descriptors[rows[start : start + block]].astype(np.float32)
-                _weighted_l1(chunk, np.arange(len(chunk)), query, self.weights,
-                             out[start : start + block])
+    def search(self, query: np.ndarray, top_k: int = 1,
+               allowed: Allowed = None) -> tuple[np.ndarray, np.ndarray]:
+        """(indices, distances) of the ``top_k`` nearest allowed keyframes, distance ascending."""
+        result = self.search_with_yaw(query, top_k, allowed)
+        return result.indices, result.distances
+
+    def exact_search(self, query: np.ndarray, top_k: int = 1,
+                     allowed: Allowed = None) -> tuple[np.ndarray, np.ndarray]:
+        """Brute-force reference: every allowed keyframe at every shift (same ordering rules)."""
+        result = self.search_with_yaw(query, top_k, allowed, exact=True)
+        return result.indices, result.distances
+
+    def search_with_yaw(self, query: np.ndarray, top_k: int = 1, allowed: Allowed = None,
+                        *, exact: bool = False) -> SearchResult:
+        """The ``top_k`` nearest allowed keyframes with their yaws (see :class:`SearchResult`).
+
+        ``exact=True`` is brute force over every keyframe and shift; otherwise the
+        three-stage search, exact for the keyframes it returns.
+        """
+        q = self.check(query)
+        n = self._size
+        if top_k <= 0 or n == 0:
+            return self._result(q, np.empty(0, np.int64), np.empty(0, np.float32),
+                                np.empty(0, np.int64))
+        mask = None if allowed is None else self._mask(allowed)
+        if exact:
+            rows = np.arange(n, dtype=np.int64) if mask is None else np.flatnonzero(mask)
+            distances = np.empty(len(rows), np.float32)
+            shifts = np.empty(len(rows), np.int64)
+            kernel = wk.nearest_f32 if self.storage == "float32" else wk.nearest_f16
+            kernel(self._store(), rows, q, self.column_weights, self.sectors, min(top_k, len(rows)),
+                   distances, shifts)
+            done = shifts >= 0  # the others provably are not among the top_k
+            return self._result(q, rows[done], distances[done], shifts[done], top_k)
+        key, yaw_key = self.raw_keys(q)
+        # stage 1: rotation-invariant keys (mask applied inside the scan)
+        want = min(max(self.candidates, top_k), n)
+        rows = np.empty(want, np.int64)
+        scores = np.empty(want, np.int32)
+        found = kk.scan_top(self._key_blocks, self._codec.quantised(key[0]), n,
+                            np.empty(0, np.bool_) if mask is None else mask, want, rows, scores)
+        rows = np.sort(rows[:found])  # sequential memory access for the gathers
+        if self.sectors == 1:
+            tried = np.zeros((len(rows), 1), np.int64)
+        else:  # stage 2: yaw-key bounds at every shift
+            bounds = np.empty((len(rows), self.sectors), np.float32)
+            kk.yaw_bounds(self._yaw_keys, rows, yaw_key[0], bounds)
+            keep = max(self.rerank, top_k)
+            if len(rows) > keep:
+                chosen = np.sort(np.lexsort((rows, bounds.min(axis=1)))[:keep])
+                rows, bounds = rows[chosen], bounds[chosen]
+            tried = np.sort(np.argsort(bounds, axis=1, kind="stable")[:, : self.yaw_shifts], axis=1)
+        # stage 3: exact distances at the shifts tried
+        at = self._at_shifts(q, rows, tried)
+        best = np.argmin(at, axis=1)  # first minimum: tried shifts ascend, so smallest k on ties
+        pick = np.arange(len(rows))
+        return self._result(q, rows, at[pick, best], tried[pick, best], top_k)
+
+    def _store(self) -> np.ndarray:
+        return self._descriptors if self.storage == "float32" else self._descriptors.view(np.uint16)
+
+    def _at_shifts(self, q: np.ndarray, rows: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+        out = np.empty(shifts.shape, np.float32)
+        kernel = wk.at_shifts_f32 if self.storage == "float32" else wk.at_shifts_f16
+        kernel(self._store(), rows, shifts, q, self.column_weights, self.sectors, out)
         return out
 
-    def _mask(self, allowed: Allowed, indices: np.ndarray) -> np.ndarray:
-        mask = np.asarray(allowed(indices), dtype=bool)
-        if mask.shape != indices.shape:
-            raise ValueError(
-                f"allowed(indices) must return a boolean mask of shape {indices.shape}, "
-                f"got {mask.shape}"
-            )
-        return mask
+    def _result(self, q: np.ndarray, rows: np.ndarray, distances: np.ndarray,
+                shifts: np.ndarray, top_k: int = 0) -> SearchResult:
+        order = np.lexsort((rows, distances))[:top_k]  # distance, then insertion order
+        rows, distances, shifts = rows[order].astype(np.int64), distances[order], shifts[order]
+        yaws = yaw_of_shift(shifts, self.sectors)
+        if self.yaw_refine and self.sectors >= 3 and len(rows):
+            around = np.stack([(shifts - 1) % self.sectors, (shifts + 1) % self.sectors], axis=1)
+            side = self._at_shifts(q, rows, around)
+            yaws = refined_yaw(shifts, side[:, 0], distances, side[:, 1], self.sectors)
+        return SearchResult(rows, distances.astype(np.float64), shifts.astype(np.int64), yaws)
 
-    def _check_allowed_mask(self, allowed: np.ndarray) -> np.ndarray:
+    def _mask(self, allowed: np.ndarray | Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        if callable(allowed):
+            allowed = allowed(np.arange(self._size, dtype=np.int64))
         mask = np.asarray(allowed)
         if mask.dtype != bool or mask.shape != (self._size,):
             raise ValueError(
-                f"allowed must be a boolean mask of shape ({self._size},), a callable or None; "
-                f"got {mask.dtype} {mask.shape}"
+                f"allowed must be a boolean mask of shape ({self._size},) (or a callable "
+                f"returning one) or None; got {mask.dtype} {mask.shape}"
             )
-        return mask
-
-    @staticmethod
-    def _top(rows: np.ndarray, distances: np.ndarray, top_k: int) -> tuple[np.ndarray, np.ndarray]:
-        order = np.lexsort((rows, distances))[:top_k]  # distance, then insertion order
-        return rows[order].astype(np.int64), distances[order].astype(np.float64)
-
-    def search(
-        self, query: np.ndarray, top_k: int = 1, allowed: Allowed = None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """(indices, distances) of the ``top_k`` nearest allowed keyframes, distance ascending.
-
-        Exact Eq. 4 distances for the keyframes returned; the set is exact whenever
-        the true neighbours are among the ``candidates`` best keys.
-        """
-        q = self._check(query, 1)
-        n = self._size
-        empty = (np.empty(0, np.int64), np.empty(0, np.float64))
-        if top_k <= 0 or n == 0:
-            return empty
-        mask = None if allowed is None or callable(allowed) else self._check_allowed_mask(allowed)
-        scores = self._scratch[:n]
-        _key_l1(self._keys, self.keys(q), n, scores)
-        if mask is not None:
-            scores[~mask] = _EXCLUDED
-        want = max(self.candidates, top_k)
-        if callable(allowed):
-            want = max(4 * want, want + 64)  # over-fetch, then filter
-        if want < n:
-            rows = np.argpartition(scores, want - 1)[:want]
-        else:
-            rows = np.arange(n)
-        if mask is not None:
-            rows = rows[scores[rows] != _EXCLUDED]
-        elif callable(allowed):
-            rows = rows[self._mask(allowed, rows)]
-            if len(rows) < top_k or len(rows) < min(self.candidates, n) // 4:
-                # the predicate removed most candidates: fall back to an exact mask
-                return self.search(q, top_k, self._mask(allowed, np.arange(n, dtype=np.int64)))
-            if len(rows) > max(self.candidates, top_k):
-                keep = np.argsort(scores[rows], kind="stable")[: max(self.candidates, top_k)]
-                rows = rows[keep]
-        if len(rows) == 0:
-            return empty
-        rows = np.sort(rows)  # sequential memory access for the gather
-        return self._top(rows, self._exact(q, rows), top_k)
-
-    def exact_search(
-        self, query: np.ndarray, top_k: int = 1, allowed: Allowed = None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Brute-force reference: Eq. 4 against every stored keyframe (same ordering rules)."""
-        q = self._check(query, 1)
-        n = self._size
-        if top_k <= 0 or n == 0:
-            return np.empty(0, np.int64), np.empty(0, np.float64)
-        everything = np.arange(n, dtype=np.int64)
-        if allowed is None:
-            rows = everything
-        elif callable(allowed):
-            rows = everything[self._mask(allowed, everything)]
-        else:
-            rows = everything[self._check_allowed_mask(allowed)]
-        distances = self._exact(q, rows)
-        if len(rows) > top_k:
-            keep = np.argpartition(distances, top_k - 1)[:top_k]
-            # ties at the k-th distance: include every row at that distance, then order
-            kth = distances[keep].max()
-            keep = np.flatnonzero(distances <= kth)
-            rows, distances = rows[keep], distances[keep]
-        return self._top(rows, distances, top_k)
+        return np.ascontiguousarray(mask)
 
     # -- persistence -------------------------------------------------------------
 
     def state(self, prefix: str = "index_") -> dict[str, np.ndarray]:
         """Plain arrays (no objects) to store in an ``.npz``; restore with :meth:`from_state`."""
-        n = self._size
-        return {
-            f"{prefix}format": np.array(INDEX_FORMAT),
-            f"{prefix}format_version": np.array(INDEX_FORMAT_VERSION, np.int64),
-            f"{prefix}weights": self.weights.copy(),
-            f"{prefix}params": np.array(
-                [self.key_dim, self.candidates, self.seed], dtype=np.int64
-            ),
-            f"{prefix}key_clip_sigma": np.array(self.key_clip_sigma, np.float64),
-            f"{prefix}storage": np.array(self.storage),
-            f"{prefix}descriptors": self._descriptors[:n].copy(),
-            f"{prefix}keys": self._keys[:n].copy(),
-        }
+        return index_state(self, prefix)
 
     @classmethod
     def from_state(cls, arrays: Mapping[str, np.ndarray], prefix: str = "index_") -> KeyframeIndex:
         """Rebuild from :meth:`state` arrays; raises ``ValueError`` naming the problem."""
-        def get(name: str) -> np.ndarray:
-            if f"{prefix}{name}" not in arrays:
-                raise ValueError(f"keyframe index state lacks '{prefix}{name}'")
-            return np.asarray(arrays[f"{prefix}{name}"])
+        return index_from_state(cls, arrays, prefix)
 
-        if get("format").shape != () or str(get("format")) != INDEX_FORMAT:
-            raise ValueError(f"not a keyframe index state (format tag '{INDEX_FORMAT}' missing)")
-        version = get("format_version")
-        if version.shape != () or int(version) != INDEX_FORMAT_VERSION:
-            raise ValueError(
-                f"keyframe index state version {version}; this code reads {INDEX_FORMAT_VERSION}"
-            )
-        params = get("params")
-        if params.shape != (3,) or params.dtype.kind not in "iu":
-            raise ValueError(f"index params have shape {params.shape}, expected (3,) integers")
-        index = cls(get("weights"), key_dim=int(params[0]), candidates=int(params[1]),
-                    seed=int(params[2]), storage=str(get("storage")),
-                    key_clip_sigma=float(get("key_clip_sigma")))
-        descriptors, keys = get("descriptors"), get("keys")
+    def stored_yaw_keys(self) -> np.ndarray:
+        """The stored yaw keys (n, S, yaw_dim) float32 (a copy)."""
+        return self._yaw_keys[: self._size].copy()
+
+    def _adopt(self, descriptors: np.ndarray, keys: np.ndarray, yaw_keys: np.ndarray) -> None:
+        """Take over validated stored arrays (from :func:`index_from_state`)."""
         n = len(descriptors)
-        if descriptors.shape != (n, index.dimension) or descriptors.dtype.kind != "f":
-            raise ValueError(f"descriptors have shape {descriptors.shape}, expected (n, {index.dimension})")
-        if keys.shape != (n, index.key_dim) or keys.dtype != np.int8:
-            raise ValueError(f"keys have shape {keys.shape} {keys.dtype}, expected ({n}, {index.key_dim}) int8")
-        if not np.all(np.isfinite(descriptors)):
-            raise ValueError("descriptors contain NaN or inf")
-        index._reserve(n)
-        index._descriptors[:n] = descriptors
-        index._keys[:n] = keys
-        index._size = n
-        return index
+        self._size = 0
+        self._reserve(n)
+        self._descriptors[:n] = descriptors
+        self._yaw_keys[:n] = yaw_keys
+        rows = np.arange(n)
+        self._key_blocks[rows // kk.BLOCK, :, rows % kk.BLOCK] = (
+            keys.astype(np.int16) + 128).astype(np.uint8)
+        self._size = n
+

@@ -100,7 +100,9 @@ class VBRLModel:
 
     def scorer(self, prune: float = 0.0) -> WeightedL1Scorer:
         """Eq. 4 scorer with this model's importances (lower distance = more similar)."""
-        return WeightedL1Scorer(self.row_weights(), prune=prune)
+        # polar grid: distances minimised over sector shifts (a yaw comes with them)
+        sector_rows = self.layout.sector_rows if self.layout.sectors > 1 else None
+        return WeightedL1Scorer(self.row_weights(), prune=prune, sector_rows=sector_rows)
 
     def featurizer(self) -> Featurizer:
         return Featurizer(self.config)

@@ -1,0 +1,81 @@
+"""Saving and restoring a :class:`~vbrl_ros.keyframe_index.KeyframeIndex` as plain arrays.
+
+The arrays go into the keyframe database's ``.npz`` (no pickle): parameters,
+weights, the stored descriptors in their storage dtype, the int8 candidate
+keys and the float32 yaw keys. Keys are derived data, so on restore a sample
+of them is recomputed from the descriptors: a file written with other key
+parameters (or a different key construction) is refused instead of silently
+searching with wrong keys.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from vbrl_ros.keyframe_index import KeyframeIndex
+
+INDEX_FORMAT = "vbrl_ros.keyframe_index"
+INDEX_FORMAT_VERSION = 2
+_PARAMS = ("sectors", "key_dim", "candidates", "rerank", "yaw_dim", "yaw_shifts", "yaw_refine",
+           "seed")
+_KEY_CHECK_ROWS = 64
+
+
+def index_state(index: KeyframeIndex, prefix: str) -> dict[str, np.ndarray]:
+    return {
+        f"{prefix}format": np.array(INDEX_FORMAT),
+        f"{prefix}format_version": np.array(INDEX_FORMAT_VERSION, np.int64),
+        f"{prefix}weights": index.weights.copy(),
+        f"{prefix}params": np.array([int(getattr(index, name)) for name in _PARAMS], np.int64),
+        f"{prefix}key_clip_sigma": np.array(index.key_clip_sigma, np.float64),
+        f"{prefix}storage": np.array(index.storage),
+        f"{prefix}descriptors": np.array(index.descriptors()),
+        f"{prefix}keys": index.stored_keys(),
+        f"{prefix}yaw_keys": index.stored_yaw_keys(),
+    }
+
+
+def index_from_state(cls: type[KeyframeIndex], arrays: Mapping[str, np.ndarray],
+                     prefix: str) -> KeyframeIndex:
+    def get(name: str) -> np.ndarray:
+        if f"{prefix}{name}" not in arrays:
+            raise ValueError(f"keyframe index state lacks '{prefix}{name}'")
+        return np.asarray(arrays[f"{prefix}{name}"])
+
+    if get("format").shape != () or str(get("format")) != INDEX_FORMAT:
+        raise ValueError(f"not a keyframe index state (format tag '{INDEX_FORMAT}' missing)")
+    version = get("format_version")
+    if version.shape != () or version.dtype.kind not in "iu" or int(version) != INDEX_FORMAT_VERSION:
+        raise ValueError(
+            f"keyframe index state version {version}; this code reads {INDEX_FORMAT_VERSION}"
+        )
+    params = get("params")
+    if params.shape != (len(_PARAMS),) or params.dtype.kind not in "iu":
+        raise ValueError(f"index params have shape {params.shape}, expected ({len(_PARAMS)},) integers")
+    options: dict[str, Any] = {name: int(value) for name, value in zip(_PARAMS, params)}
+    options["yaw_refine"] = bool(options["yaw_refine"])
+    index = cls(get("weights"), storage=str(get("storage")),
+                key_clip_sigma=float(get("key_clip_sigma")), **options)
+    descriptors, keys, yaw = get("descriptors"), get("keys"), get("yaw_keys")
+    n = len(descriptors)
+    if descriptors.shape != (n, index.dimension) or descriptors.dtype != np.dtype(index.storage):
+        raise ValueError(f"descriptors have shape {descriptors.shape} {descriptors.dtype}, "
+                         f"expected ({n}, {index.dimension}) {index.storage}")
+    if keys.shape != (n, index.key_dim) or keys.dtype != np.int8:
+        raise ValueError(f"keys have shape {keys.shape} {keys.dtype}, "
+                         f"expected ({n}, {index.key_dim}) int8")
+    if yaw.shape != (n, index.sectors, index.yaw_dim) or yaw.dtype != np.float32:
+        raise ValueError(f"yaw keys have shape {yaw.shape} {yaw.dtype}, "
+                         f"expected ({n}, {index.sectors}, {index.yaw_dim}) float32")
+    if not np.all(np.isfinite(descriptors)):
+        raise ValueError("descriptors contain NaN or inf")
+    sample = np.unique(np.linspace(0, n - 1, min(n, _KEY_CHECK_ROWS)).astype(np.int64))
+    if n and (not np.array_equal(index.keys(descriptors[sample]), keys[sample])
+              or not np.array_equal(index.raw_keys(descriptors[sample])[1], yaw[sample])):
+        raise ValueError("stored keys do not match the descriptors (other key parameters?)")
+    index._adopt(descriptors, keys, yaw)
+    return index

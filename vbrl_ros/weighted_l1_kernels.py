@@ -1,0 +1,192 @@
+"""Compiled Eq. 4 distances under circular sector shifts (the exact part of retrieval).
+
+A compact descriptor is sector-major: ``x.reshape(S, R)`` holds the same R
+active columns for each of the S sectors (S = 1 for the Cartesian grid), and
+the column weights ``w`` (R,) are tied across sectors. The distance at shift
+``k`` is
+
+    D_k(q, t) = sum_s sum_r w_r |q[(s + k) % S, r] - t[s, r]|
+
+and the rotation-minimised distance is ``min_k D_k``. Every kernel here sums a
+given (template, shift) pair in the same order (template sector by template
+sector, each a vectorised sum over r), so the brute-force scan and the index's
+re-rank at chosen shifts return bitwise-identical float32 values — equality
+between the two is meaningful, not "up to rounding".
+
+float16 storage: numba has no float16 arithmetic, so such stores are passed as
+their ``uint16`` bit patterns and widened row by row into a scratch buffer
+(exact for every finite half, subnormals included). All kernels are
+single-threaded and release the GIL.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_TWO_POW_112 = np.float32(2.0**112)  # rebias of a half exponent (15) to a float exponent (127)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _widen_half(src: np.ndarray, out: np.ndarray) -> None:
+    """out[j] = float32(src[j]) for a uint16 row holding finite float16 bit patterns.
+
+    Shifting exponent + mantissa into float32 position gives the half's value
+    times 2**-112 (also for subnormals, which become float32 subnormals); one
+    multiply restores it exactly, then the sign is applied.
+    """
+    bits = out.view(np.uint32)
+    for j in range(len(src)):
+        bits[j] = np.uint32(src[j] & 0x7FFF) << 13
+    for j in range(len(src)):
+        v = out[j] * _TWO_POW_112
+        out[j] = -v if src[j] & 0x8000 else v
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def _sector_l1(q: np.ndarray, q_start: int, t: np.ndarray, t_start: int,
+               w: np.ndarray) -> np.float32:
+    """sum_r w[r] |q[q_start + r] - t[t_start + r]| (float32).
+
+    Deliberately not inlined: a separate fastmath function is vectorised the
+    same way whoever calls it (inlined into a non-fastmath caller it is not
+    vectorised at all, ~8x slower), and every caller gets the same rounding.
+    """
+    n = len(w)
+    a = q[q_start : q_start + n]
+    b = t[t_start : t_start + n]
+    total = np.float32(0.0)
+    for r in range(n):
+        total += w[r] * abs(a[r] - b[r])
+    return total
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _all_shifts(t: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int,
+                out: np.ndarray) -> None:
+    """out[k] = D_k(q, t) for every shift k (template row t, query q, both (S*R,))."""
+    width = len(w)
+    out[:] = 0.0
+    for s in range(sectors):
+        for k in range(sectors):
+            out[k] += _sector_l1(q, ((s + k) % sectors) * width, t, s * width, w)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _one_shift(t: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int, k: int) -> np.float32:
+    width = len(w)
+    total = np.float32(0.0)
+    for s in range(sectors):
+        total += _sector_l1(q, ((s + k) % sectors) * width, t, s * width, w)
+    return total
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _argmin_first(values: np.ndarray) -> int:
+    best = 0
+    for k in range(1, len(values)):
+        if values[k] < values[best]:  # strict: the smallest shift wins a tie
+            best = k
+    return best
+
+
+@njit(cache=True, nogil=True)
+def min_over_shifts_f32(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.ndarray,
+                        sectors: int, out_distance: np.ndarray, out_shift: np.ndarray) -> None:
+    """Brute force: min_k D_k and its k for each stored row ``store[rows[i]]`` (float32 store)."""
+    per_shift = np.empty(sectors, np.float32)
+    for i in range(len(rows)):
+        _all_shifts(store[rows[i]], q, w, sectors, per_shift)
+        best = _argmin_first(per_shift)
+        out_distance[i] = per_shift[best]
+        out_shift[i] = best
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _keep_best(best: np.ndarray, count: int, value: np.float32) -> int:
+    """Insert ``value`` into the ascending ``best[:count]`` (capacity len(best)); new count."""
+    pos = min(count, len(best) - 1)
+    if count == len(best) and value >= best[pos]:
+        return count
+    while pos > 0 and best[pos - 1] > value:
+        best[pos] = best[pos - 1]
+        pos -= 1
+    best[pos] = value
+    return min(count + 1, len(best))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _nearest_row(t: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int, threshold: float,
+                 per_shift: np.ndarray) -> int:
+    """Fill per_shift with D_k; -1 once every partial sum exceeds ``threshold`` (abandoned)."""
+    width = len(w)
+    per_shift[:] = 0.0
+    for s in range(sectors):
+        for k in range(sectors):
+            per_shift[k] += _sector_l1(q, ((s + k) % sectors) * width, t, s * width, w)
+        if s + 1 < sectors and per_shift.min() > threshold:
+            return -1
+    return _argmin_first(per_shift)
+
+
+@njit(cache=True, nogil=True)
+def nearest_f32(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int,
+                top_k: int, out_distance: np.ndarray, out_shift: np.ndarray) -> None:
+    """:func:`min_over_shifts_f32` that may skip rows which cannot be among the ``top_k``.
+
+    A row is abandoned (distance +inf, shift -1) once the partial sums of all
+    its shifts exceed the k-th best distance found so far: partial sums only
+    grow, so it is exact, and with a clear nearest keyframe most rows stop
+    after a few sectors. Rows it completes have the same sums as every kernel here.
+    """
+    per_shift = np.empty(sectors, np.float32)
+    best = np.empty(top_k, np.float32)
+    count = 0
+    for i in range(len(rows)):
+        threshold = best[top_k - 1] if count == top_k else np.inf
+        k = _nearest_row(store[rows[i]], q, w, sectors, threshold, per_shift)
+        out_shift[i] = k
+        out_distance[i] = per_shift[k] if k >= 0 else np.inf
+        if k >= 0:
+            count = _keep_best(best, count, per_shift[k])
+
+
+@njit(cache=True, nogil=True)
+def nearest_f16(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int,
+                top_k: int, out_distance: np.ndarray, out_shift: np.ndarray) -> None:
+    """:func:`nearest_f32` for a float16 store passed as its uint16 view."""
+    per_shift = np.empty(sectors, np.float32)
+    best = np.empty(top_k, np.float32)
+    row = np.empty(store.shape[1], np.float32)
+    count = 0
+    for i in range(len(rows)):
+        threshold = best[top_k - 1] if count == top_k else np.inf
+        _widen_half(store[rows[i]], row)
+        k = _nearest_row(row, q, w, sectors, threshold, per_shift)
+        out_shift[i] = k
+        out_distance[i] = per_shift[k] if k >= 0 else np.inf
+        if k >= 0:
+            count = _keep_best(best, count, per_shift[k])
+
+
+@njit(cache=True, nogil=True)
+def at_shifts_f32(store: np.ndarray, rows: np.ndarray, shifts: np.ndarray, q: np.ndarray,
+                  w: np.ndarray, sectors: int, out: np.ndarray) -> None:
+    """out[i, j] = D_{shifts[i, j]}(q, store[rows[i]]); a negative shift leaves +inf."""
+    for i in range(len(rows)):
+        t = store[rows[i]]
+        for j in range(shifts.shape[1]):
+            k = shifts[i, j]
+            out[i, j] = _one_shift(t, q, w, sectors, k) if k >= 0 else np.inf
+
+
+@njit(cache=True, nogil=True)
+def at_shifts_f16(store: np.ndarray, rows: np.ndarray, shifts: np.ndarray, q: np.ndarray,
+                  w: np.ndarray, sectors: int, out: np.ndarray) -> None:
+    """:func:`at_shifts_f32` for a float16 store passed as its uint16 view."""
+    row = np.empty(store.shape[1], np.float32)
+    for i in range(len(rows)):
+        _widen_half(store[rows[i]], row)
+        for j in range(shifts.shape[1]):
+            k = shifts[i, j]
+            out[i, j] = _one_shift(row, q, w, sectors, k) if k >= 0 else np.inf
