@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 import vbrl_ros.database as database_module
 from vbrl_ros.database import (
+    DATABASE_FORMAT_VERSION,
     METADATA_BYTES_PER_KEYFRAME,
     DatabaseFileError,
     KeyframeDatabase,
@@ -56,7 +57,7 @@ def test_compact_storage_keeps_only_active_rows():
     assert db.descriptor(0).dtype == np.float32
 
 
-def test_query_matches_a_direct_eq4_computation(monkeypatch):
+def test_query_matches_a_direct_eq4_computation():
     db, full = make_db(300)
     query = np.random.default_rng(2).normal(size=D).astype(np.float32)
     expected = eq4(query, full)
@@ -66,9 +67,9 @@ def test_query_matches_a_direct_eq4_computation(monkeypatch):
     assert [c.keyframe_id for c in result] == list(order)  # ids 0..n-1 in insertion order
     np.testing.assert_allclose([c.distance for c in result], expected[order], rtol=1e-5)
     assert all(a.distance <= b.distance for a, b in zip(result, result[1:]))  # lower = closer
-    # the brute-force scan works in bounded blocks; block edges change nothing
-    monkeypatch.setattr(database_module, "_BLOCK_ELEMENTS", 7 * db.n_active)
-    assert db.query(SCORER.compact(query), top_k=10) == result
+    assert all(c.yaw == 0.0 for c in result)  # Cartesian: no rotation search
+    # the index's answer equals brute force over every keyframe
+    assert db.query(SCORER.compact(query), top_k=10, exact=True) == result
 
 
 def test_a_stored_descriptor_finds_itself_at_distance_zero():
@@ -174,11 +175,17 @@ def test_invalid_input_is_refused():
 # -- memory and growth -----------------------------------------------------------------
 
 
-def test_bytes_per_keyframe_is_active_rows_times_four_plus_metadata():
+def test_bytes_per_keyframe_is_descriptor_key_and_metadata():
     db, _ = make_db(0)
-    assert db.bytes_per_keyframe() == (D - 15) * 4 + METADATA_BYTES_PER_KEYFRAME
+    active = D - 15
+    key = min(256, active)  # one int8 key entry per group, at most one group per active row
+    assert db.bytes_per_keyframe() == active * 4 + key + METADATA_BYTES_PER_KEYFRAME
+    assert db.bytes_breakdown() == {"descriptor": active * 4, "key": key, "yaw_key": 0,
+                                    "metadata": METADATA_BYTES_PER_KEYFRAME}
     full = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), model_id="default")
-    assert full.bytes_per_keyframe() == 7872 * 4 + METADATA_BYTES_PER_KEYFRAME == 31644
+    assert full.bytes_per_keyframe() == 7872 * 4 + 256 + METADATA_BYTES_PER_KEYFRAME == 31900
+    half = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), model_id="default", storage="float16")
+    assert half.bytes_per_keyframe() == 7872 * 2 + 256 + METADATA_BYTES_PER_KEYFRAME
     assert full.cloud_bytes_per_keyframe() == 0.0
 
 
@@ -290,8 +297,10 @@ def test_other_version_model_and_pruning_are_refused(tmp_path):
     _assert_refused(path, "built with model 'model-A'", model_id="model-B")
     pruned = WeightedL1Scorer(WEIGHTS, prune=0.5)
     _assert_refused(path, "different pruning", scorer=pruned)
-    _rewrite(path, format_version=np.array(2))
-    _assert_refused(path, "format version 2")
+    _rewrite(path, format_version=np.array(1))  # before the index: no index arrays
+    _assert_refused(path, "format version 1; this vbrl_ros reads version 2")
+    _rewrite(path, format_version=np.array(3))
+    _assert_refused(path, "format version 3")
 
 
 def test_inconsistent_contents_are_refused(tmp_path):
@@ -309,3 +318,96 @@ def test_inconsistent_contents_are_refused(tmp_path):
         for name, data in members.items():
             archive.writestr(name, data)
     _assert_refused(path, "lacks poses")
+
+
+def test_index_arrays_are_checked_on_load(tmp_path):
+    db, full = make_db(30)
+    path = db.save(tmp_path / "kf.npz")
+    with np.load(path, allow_pickle=False) as archive:
+        assert "index_descriptors" in archive.files and "descriptors" not in archive.files
+        keys = archive["index_keys"].copy()
+    keys[3] = np.clip(keys[3].astype(np.int16) + 5, -127, 127).astype(np.int8)
+    _rewrite(path, index_keys=keys)
+    _assert_refused(path, "inconsistent: stored keys do not match")
+    path = db.save(tmp_path / "kf.npz")
+    _rewrite(path, index_descriptors=np.zeros((29, db.n_active), np.float32))
+    _assert_refused(path, "inconsistent")
+    path = db.save(tmp_path / "kf.npz")
+    _rewrite(path, index_format_version=np.array(1))
+    _assert_refused(path, "keyframe index state version")
+    assert DATABASE_FORMAT_VERSION == 2
+
+
+# -- index delegation, float16, polar --------------------------------------------------
+
+
+def test_one_copy_of_the_descriptors_lives_in_the_index():
+    db, full = make_db(5)
+    assert not hasattr(db, "_descriptors")
+    np.testing.assert_array_equal(db.index.descriptors()[2], full[2, SCORER.active_rows])
+    np.testing.assert_array_equal(db.descriptor(-1), full[4, SCORER.active_rows])
+
+
+def test_float16_storage_round_trips_and_finds_itself(tmp_path):
+    db = KeyframeDatabase(SCORER, "model-A", storage="float16")
+    full = np.random.default_rng(5).normal(size=(200, D)).astype(np.float32)
+    for i, x in enumerate(full):
+        db.add(SCORER.compact(x), float(i), "s")
+    assert db.index.descriptors().dtype == np.float16
+    stored = full[:, SCORER.active_rows].astype(np.float16).astype(np.float32)
+    np.testing.assert_array_equal(db.descriptor(7), stored[7])
+    best = db.query(SCORER.compact(full[7]), top_k=3)
+    assert best[0].index == 7
+    expected = np.abs(stored - SCORER.compact(full[7])) @ SCORER.active_weights
+    np.testing.assert_allclose([c.distance for c in best], np.sort(expected)[:3], rtol=1e-5)
+    loaded = KeyframeDatabase.load(db.save(tmp_path / "kf.npz"), SCORER, "model-A")
+    assert loaded.index.storage == "float16"
+    assert loaded.query(SCORER.compact(full[7]), top_k=3) == best
+    with pytest.raises(ValueError, match="float16 range"):
+        db.add(np.full(db.n_active, 1e6), 0.0, "s")
+
+
+SECTORS, COLUMNS = 8, 12
+
+
+def polar_scorer(prune: float = 0.0) -> WeightedL1Scorer:
+    """Sector-major toy layout: row s * COLUMNS + c is column c of sector s; 3 columns off."""
+    column_weights = np.random.default_rng(3).uniform(0.1, 1.0, COLUMNS)
+    column_weights[[1, 5, 9]] = 0.0
+    sector_rows = np.arange(SECTORS * COLUMNS).reshape(SECTORS, COLUMNS)
+    return WeightedL1Scorer(np.tile(column_weights, SECTORS), prune, sector_rows=sector_rows)
+
+
+def test_polar_candidates_carry_the_yaw_of_the_best_shift(tmp_path):
+    scorer = polar_scorer()
+    db = KeyframeDatabase(scorer, "polar")
+    assert db.index.sectors == SECTORS and db.n_active == SECTORS * (COLUMNS - 3)
+    rng = np.random.default_rng(1)
+    places = rng.normal(size=(40, SECTORS * COLUMNS))
+    for i, x in enumerate(places):
+        db.add(scorer.compact(x), float(i), "map")
+    for k in (0, 1, 3, 4, 6, 7):
+        rotated = np.roll(scorer.compact(places[11]).reshape(SECTORS, -1), k, axis=0).ravel()
+        best = db.query(rotated, top_k=2)[0]
+        signed = k if k <= SECTORS // 2 else k - SECTORS
+        assert best.index == 11 and best.distance == 0.0
+        assert best.yaw == pytest.approx(signed * 2 * np.pi / SECTORS)
+        assert db.query(rotated, top_k=2, exact=True)[0] == best
+    loaded = KeyframeDatabase.load(db.save(tmp_path / "kf.npz"), scorer, "polar")
+    assert loaded.query(rotated, top_k=3) == db.query(rotated, top_k=3)
+    cartesian = WeightedL1Scorer(np.tile(np.ones(COLUMNS), SECTORS))
+    _assert_refused(tmp_path / "kf.npz", "different pruning or grid", "polar", cartesian)
+
+
+def test_recency_exclusion_is_exact_in_a_large_database():
+    db = KeyframeDatabase(SCORER, model_id="m", candidates=4)  # few candidates: mask must act first
+    x = np.random.default_rng(0).normal(size=(3000, db.n_active)).astype(np.float32)
+    for i, v in enumerate(x):
+        db.add(v, stamp=float(i), session="B" if i % 3 == 0 else "A")
+    kwargs = dict(top_k=20, session="A", stamp=2999.0, exclude_recent_s=100.0)
+    for i in (2997, 2998):  # a recent keyframe of the other session / of the own session
+        found = db.query(x[i] + 0.01, **kwargs)
+        assert len(found) == 20
+        assert all(c.session == "B" or c.stamp <= 2899.0 for c in found)
+        assert (found[0].index == i) == (i == 2997)  # the own recent past is never returned
+        assert found[0] == db.query(x[i] + 0.01, exact=True, **kwargs)[0]

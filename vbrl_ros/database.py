@@ -1,23 +1,29 @@
 """The keyframe database: the online node's long-term memory of places.
 
-Per keyframe it keeps the *compact* standardised descriptor (float32, only the
-scorer's active rows — rows the learned sparsity switched off cost no memory),
-the stamp, the session, a unique keyframe id, an optional pose and an optional
-downsampled cloud for geometric verification.
+Per keyframe: the *compact* standardised descriptor (only the scorer's active
+rows — rows the learned sparsity switched off cost no memory), the stamp, the
+session, a unique keyframe id, an optional pose and an optional downsampled
+cloud for geometric verification.
 
-Storage is a set of growable column arrays with amortised doubling, so
-:meth:`KeyframeDatabase.add` is O(1) amortised; clouds live in one
-concatenated ``(P, 3)`` float32 array plus ``offsets`` (keyframe ``i`` owns
-``points[offsets[i]:offsets[i + 1]]``), never a list of small arrays.
+The descriptors live in one place, a :class:`~vbrl_ros.keyframe_index.KeyframeIndex`
+(float32 or float16, next to its small search keys), which also answers
+queries: candidate keys + exact Eq. 4 re-rank, or brute force with
+``exact=True``. On a polar grid (``scorer.sectors`` > 1) distances are minimised
+over circular sector shifts and each candidate carries the yaw of its best
+shift (:attr:`Candidate.yaw`). The metadata are growable column arrays with
+amortised doubling, so :meth:`KeyframeDatabase.add` is O(1) amortised besides
+the index's O(d) keys; clouds live in one concatenated ``(P, 3)`` float32
+array plus ``offsets`` (keyframe ``i`` owns ``points[offsets[i]:offsets[i + 1]]``).
 
 Distances are Eq. 4 (:class:`~vbrl_ros.scoring.WeightedL1Scorer`):
-**lower = more similar**. Retrieval is a vectorised brute-force scan confined to
-:meth:`KeyframeDatabase._distances` so an index can replace it later.
+**lower = more similar**.
 
 On disk: one versioned ``.npz`` (``format="vbrl_ros.keyframes"``,
-``format_version=1``) written atomically, loaded with ``allow_pickle=False``.
-It records the ``model_id`` and the scorer's active rows, because descriptors
-compacted/standardised for one model are meaningless under another.
+``format_version=2``: metadata plus the index's arrays under ``index_*``),
+written atomically, loaded with ``allow_pickle=False``. It records the
+``model_id`` and the scorer's active rows, because descriptors compacted or
+standardised for one model are meaningless under another. Version 1 files
+(before the index) are refused; rebuild them by replaying the data.
 """
 
 from __future__ import annotations
@@ -26,26 +32,25 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from vbrl_ros.io.atomic import atomic_write
 from vbrl_ros.io.npz import one_line, read_npz
+from vbrl_ros.keyframe_index import KeyframeIndex
 from vbrl_ros.scoring import WeightedL1Scorer
 
 DATABASE_FORMAT = "vbrl_ros.keyframes"
-DATABASE_FORMAT_VERSION = 1
+DATABASE_FORMAT_VERSION = 2
 _INITIAL_CAPACITY = 64
-# Bound the (rows x active) temporary of one brute-force block (~16 MB float32),
-# so a 100k-keyframe scan never allocates the whole |T - q| matrix at once.
-_BLOCK_ELEMENTS = 4 * 1024 * 1024
 # Fixed per-keyframe metadata: stamp f64 + session index i32 + id i64
 # + pose 4x4 f64 + cloud offset i64.
 METADATA_BYTES_PER_KEYFRAME = 8 + 4 + 8 + 16 * 8 + 8
 _ARRAY_KEYS = (
-    "descriptors", "stamps", "session_index", "keyframe_ids", "poses",
-    "cloud_offsets", "cloud_points",
+    "stamps", "session_index", "keyframe_ids", "poses", "cloud_offsets", "cloud_points",
 )  # fmt: skip
+_INDEX_PREFIX = "index_"
 
 
 class DatabaseFileError(ValueError):
@@ -54,13 +59,19 @@ class DatabaseFileError(ValueError):
 
 @dataclass(frozen=True)
 class Candidate:
-    """One retrieval result. ``distance`` is Eq. 4: lower = more similar."""
+    """One retrieval result. ``distance`` is Eq. 4: lower = more similar.
+
+    ``yaw`` (radians, (-pi, pi]): the query scan is this keyframe's scan rotated
+    by +yaw about z, i.e. ``T_query_match`` has this yaw (the best sector shift;
+    0.0 on the Cartesian grid) — a seed for geometric verification.
+    """
 
     index: int  # row in the database (changes on clear(); keyframe_id does not repeat)
     keyframe_id: int
     distance: float
     stamp: float
     session: str
+    yaw: float = 0.0
 
 
 def _grown(array: np.ndarray, needed: int) -> np.ndarray:
@@ -75,12 +86,19 @@ def _grown(array: np.ndarray, needed: int) -> np.ndarray:
 
 
 class KeyframeDatabase:
-    """Keyframes scored with one model's :class:`WeightedL1Scorer` (lower distance = closer)."""
+    """Keyframes scored with one model's :class:`WeightedL1Scorer` (lower distance = closer).
 
-    def __init__(self, scorer: WeightedL1Scorer, model_id: str) -> None:
+    ``storage`` (``"float32"`` or ``"float16"``) and ``index_options`` (e.g.
+    ``candidates``, ``rerank``, ``yaw_shifts``, ``yaw_refine``; see
+    :class:`~vbrl_ros.keyframe_index.KeyframeIndex`) configure the index.
+    """
+
+    def __init__(self, scorer: WeightedL1Scorer, model_id: str, *, storage: str = "float32",
+                 **index_options: Any) -> None:
         self.scorer = scorer
         self.model_id = str(model_id)
-        self.n_active = len(scorer.active_rows)
+        self.index = KeyframeIndex(scorer.active_weights, sectors=scorer.sectors,
+                                   storage=storage, **index_options)
         self._next_id = 0
         self._reset_storage()
 
@@ -90,7 +108,6 @@ class KeyframeDatabase:
         self._sessions: list[str] = []
         self._session_lookup: dict[str, int] = {}
         c = _INITIAL_CAPACITY
-        self._descriptors = np.empty((c, self.n_active), dtype=np.float32)
         self._stamps = np.empty(c, dtype=np.float64)
         self._session_index = np.empty(c, dtype=np.int32)
         self._keyframe_ids = np.empty(c, dtype=np.int64)
@@ -104,8 +121,13 @@ class KeyframeDatabase:
         return self._size
 
     @property
+    def n_active(self) -> int:
+        """Length of a compact descriptor (the scorer's active rows)."""
+        return self.index.dimension
+
+    @property
     def capacity(self) -> int:
-        """Keyframes storable before the next (doubling) reallocation."""
+        """Keyframes storable before the next (doubling) reallocation of the metadata."""
         return len(self._stamps)
 
     @property
@@ -133,7 +155,8 @@ class KeyframeDatabase:
         return self._sessions[self._session_index[self._check_index(index)]]
 
     def descriptor(self, index: int) -> np.ndarray:
-        return self._descriptors[self._check_index(index)].copy()
+        """The stored compact descriptor as float32 (float16-rounded with float16 storage)."""
+        return self.index.descriptor(self._check_index(index))
 
     def pose(self, index: int) -> np.ndarray:
         """T_world_lidar (4x4); all-NaN when the pose was not given."""
@@ -160,8 +183,12 @@ class KeyframeDatabase:
     # -- memory -------------------------------------------------------------
 
     def bytes_per_keyframe(self) -> int:
-        """Fixed bytes per keyframe: compact descriptor (active rows x 4) + metadata, no cloud."""
-        return self.n_active * np.dtype(np.float32).itemsize + METADATA_BYTES_PER_KEYFRAME
+        """Fixed bytes per keyframe: descriptor + search keys + metadata, no cloud."""
+        return self.index.bytes_per_keyframe() + METADATA_BYTES_PER_KEYFRAME
+
+    def bytes_breakdown(self) -> dict[str, int]:
+        """Per-keyframe bytes: descriptor, key, yaw_key (index) and metadata."""
+        return {**self.index.bytes_breakdown(), "metadata": METADATA_BYTES_PER_KEYFRAME}
 
     def cloud_bytes_per_keyframe(self) -> float:
         """Mean bytes of stored cloud per keyframe (12 per point; 0 for an empty database)."""
@@ -178,8 +205,7 @@ class KeyframeDatabase:
         pose: np.ndarray | None = None,
         cloud: np.ndarray | None = None,
     ) -> int:
-        """Append one keyframe; returns its new keyframe id (O(1) amortised)."""
-        descriptor = self._check_descriptor(descriptor_compact)
+        """Append one keyframe; returns its new keyframe id (O(1) amortised + O(d) keys)."""
         stamp = float(stamp)
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite, got {stamp}")
@@ -192,9 +218,9 @@ class KeyframeDatabase:
         points = np.empty((0, 3), np.float32) if cloud is None else np.asarray(cloud, np.float32)
         if points.ndim != 2 or points.shape[1] != 3:
             raise ValueError(f"cloud must have shape (M, 3), got {points.shape}")
+        self.index.add(descriptor_compact)  # validates the descriptor before storing anything
 
         n = self._size
-        self._descriptors = _grown(self._descriptors, n + 1)
         self._stamps = _grown(self._stamps, n + 1)
         self._session_index = _grown(self._session_index, n + 1)
         self._keyframe_ids = _grown(self._keyframe_ids, n + 1)
@@ -202,7 +228,6 @@ class KeyframeDatabase:
         self._cloud_offsets = _grown(self._cloud_offsets, n + 2)
         self._cloud_points = _grown(self._cloud_points, self._n_points + len(points))
 
-        self._descriptors[n] = descriptor
         self._stamps[n] = stamp
         self._session_index[n] = self._session_id(str(session))
         self._keyframe_ids[n] = self._next_id
@@ -216,6 +241,7 @@ class KeyframeDatabase:
 
     def clear(self) -> None:
         """Forget every keyframe and free the memory. Ids keep increasing (never reused)."""
+        self.index = self.index.empty_like()
         self._reset_storage()
 
     def _session_id(self, session: str) -> int:
@@ -224,20 +250,6 @@ class KeyframeDatabase:
             index = self._session_lookup[session] = len(self._sessions)
             self._sessions.append(session)
         return index
-
-    def _check_descriptor(self, descriptor: np.ndarray) -> np.ndarray:
-        descriptor = np.asarray(descriptor, dtype=np.float32)
-        if descriptor.shape != (self.n_active,):
-            hint = " (pass scorer.compact(descriptor))" if descriptor.shape == (
-                self.scorer.dimension,
-            ) else ""
-            raise ValueError(
-                f"compact descriptor must have shape ({self.n_active},), got "
-                f"{descriptor.shape}{hint}"
-            )
-        if not np.all(np.isfinite(descriptor)):
-            raise ValueError("descriptor contains NaN or inf")
-        return descriptor
 
     # -- retrieval ------------------------------------------------------------
 
@@ -249,6 +261,7 @@ class KeyframeDatabase:
         session: str | None = None,
         stamp: float | None = None,
         exclude_recent_s: float = 0.0,
+        exact: bool = False,
     ) -> list[Candidate]:
         """The ``top_k`` closest keyframes, sorted by distance ascending (lower = more similar).
 
@@ -256,46 +269,32 @@ class KeyframeDatabase:
         are excluded (the robot's own recent past is not a loop closure); keyframes
         of other sessions are never excluded by recency. Without ``session`` or
         ``stamp`` nothing is excluded. Ties are broken by insertion order.
+        ``exact=True`` scans every keyframe (and every sector shift) instead of
+        using the index's keys.
         """
-        query = self._check_descriptor(descriptor_compact)
+        query = self.index.check(descriptor_compact)
         if top_k <= 0 or self._size == 0:
             return []
-        distances = self._distances(query)
+        allowed = None
         if session is not None and stamp is not None:
             session_id = self._session_lookup.get(str(session))
             if session_id is not None:
                 recent = (self._session_index[: self._size] == session_id) & (
                     self._stamps[: self._size] > float(stamp) - float(exclude_recent_s)
                 )
-                distances[recent] = np.inf
-        valid = np.flatnonzero(np.isfinite(distances))
-        if len(valid) > top_k:
-            # O(N) selection, then sort only the k survivors
-            valid = valid[np.argpartition(distances[valid], top_k - 1)[:top_k]]
-        order = valid[np.lexsort((valid, distances[valid]))]
+                allowed = ~recent
+        found = self.index.search_with_yaw(query, top_k, allowed, exact=exact)
         return [
             Candidate(
                 index=int(i),
                 keyframe_id=int(self._keyframe_ids[i]),
-                distance=float(distances[i]),
+                distance=float(distance),
                 stamp=float(self._stamps[i]),
                 session=self._sessions[self._session_index[i]],
+                yaw=float(yaw),
             )
-            for i in order
+            for i, distance, yaw in zip(found.indices, found.distances, found.yaws)
         ]
-
-    def _distances(self, query: np.ndarray) -> np.ndarray:
-        """Eq. 4 distance (float64, (N,)) from ``query`` to every stored keyframe.
-
-        The one place that touches all descriptors: an approximate index replaces
-        this method without changing :meth:`query`'s filtering and ordering.
-        """
-        out = np.empty(self._size, dtype=np.float64)
-        block = max(1, _BLOCK_ELEMENTS // max(1, self.n_active))
-        for start in range(0, self._size, block):
-            stop = min(start + block, self._size)
-            out[start:stop] = self.scorer.distances_compact(query, self._descriptors[start:stop])
-        return out
 
     # -- persistence ----------------------------------------------------------
 
@@ -308,21 +307,25 @@ class KeyframeDatabase:
             model_id=np.array(self.model_id),
             dimension=np.array(self.scorer.dimension, dtype=np.int64),
             active_rows=np.asarray(self.scorer.active_rows, dtype=np.int64),
+            sectors=np.array(self.scorer.sectors, dtype=np.int64),
             sessions_json=np.array(json.dumps(self._sessions)),
             next_keyframe_id=np.array(self._next_id, dtype=np.int64),
-            descriptors=self._descriptors[:n],
             stamps=self._stamps[:n],
             session_index=self._session_index[:n],
             keyframe_ids=self._keyframe_ids[:n],
             poses=self._poses[:n],
             cloud_offsets=self._cloud_offsets[: n + 1],
             cloud_points=self._cloud_points[:p],
+            **self.index.state(_INDEX_PREFIX),
         )
         return atomic_write(path, lambda handle: np.savez(handle, **payload))
 
     @classmethod
     def load(cls, path: str | Path, scorer: WeightedL1Scorer, model_id: str) -> KeyframeDatabase:
-        """Load and validate; any problem raises :class:`DatabaseFileError` (one line)."""
+        """Load and validate; any problem raises :class:`DatabaseFileError` (one line).
+
+        The index parameters and storage are the saved ones.
+        """
         path = Path(path)
         contents = read_npz(path, DatabaseFileError, "keyframe database")
         if _scalar_str(contents.get("format")) != DATABASE_FORMAT:
@@ -333,9 +336,10 @@ class KeyframeDatabase:
         if version != DATABASE_FORMAT_VERSION:
             raise DatabaseFileError(
                 f"{path} has keyframe database format version {version}; this vbrl_ros reads "
-                f"version {DATABASE_FORMAT_VERSION}"
+                f"version {DATABASE_FORMAT_VERSION} (rebuild the database by replaying the data)"
             )
-        required = ("model_id", "dimension", "active_rows", "sessions_json", "next_keyframe_id")
+        required = ("model_id", "dimension", "active_rows", "sectors", "sessions_json",
+                    "next_keyframe_id")
         missing = [key for key in (*required, *_ARRAY_KEYS) if key not in contents]
         if missing:
             raise DatabaseFileError(f"{path} lacks {', '.join(missing)}")
@@ -346,13 +350,13 @@ class KeyframeDatabase:
             )
         active = contents["active_rows"]
         dimension = _scalar_int(contents["dimension"])
-        if dimension != scorer.dimension or not np.array_equal(
-            active, scorer.active_rows
-        ):
+        sectors = _scalar_int(contents["sectors"])
+        if (dimension != scorer.dimension or sectors != scorer.sectors
+                or not np.array_equal(active, scorer.active_rows)):
             raise DatabaseFileError(
-                f"{path} stores {active.size} active rows of a {dimension}-row "
-                f"descriptor; the scorer uses {len(scorer.active_rows)} of {scorer.dimension} "
-                "(different pruning?)"
+                f"{path} stores {active.size} active rows in {sectors} sector(s) of a "
+                f"{dimension}-row descriptor; the scorer uses {len(scorer.active_rows)} in "
+                f"{scorer.sectors} of {scorer.dimension} (different pruning or grid?)"
             )
         try:
             sessions = json.loads(_scalar_str(contents["sessions_json"]))
@@ -368,7 +372,6 @@ class KeyframeDatabase:
         """Adopt loaded arrays after checking their shapes and invariants."""
         n = len(c["stamps"])
         expected = {
-            "descriptors": ((n, self.n_active), "f"),
             "stamps": ((n,), "f"),
             "session_index": ((n,), "i"),
             "keyframe_ids": ((n,), "i"),
@@ -390,13 +393,20 @@ class KeyframeDatabase:
             raise ValueError("next_keyframe_id would reuse an id")
         if n and (c["session_index"].min() < 0 or c["session_index"].max() >= len(sessions)):
             raise ValueError("session index outside the session table")
-        if not np.all(np.isfinite(c["descriptors"])) or not np.all(np.isfinite(c["stamps"])):
-            raise ValueError("descriptors or stamps contain NaN or inf")
+        if not np.all(np.isfinite(c["stamps"])):
+            raise ValueError("stamps contain NaN or inf")
+        index = KeyframeIndex.from_state(c, _INDEX_PREFIX)
+        if len(index) != n:
+            raise ValueError(f"the index holds {len(index)} descriptors for {n} keyframes")
+        if index.sectors != self.scorer.sectors or not np.array_equal(
+            index.weights, self.scorer.active_weights
+        ):
+            raise ValueError("the index was built with other weights than the scorer's")
 
+        self.index = index
         self._size, self._n_points, self._next_id = n, len(points), next_id
         self._sessions = sessions
         self._session_lookup = {name: i for i, name in enumerate(sessions)}
-        self._descriptors = c["descriptors"].astype(np.float32, copy=False)
         self._stamps = c["stamps"].astype(np.float64, copy=False)
         self._session_index = c["session_index"].astype(np.int32, copy=False)
         self._keyframe_ids = ids.astype(np.int64, copy=False)
