@@ -39,11 +39,45 @@ def test_console_script_entry_point_runs():
 
 def test_bench_prints_a_table_and_writes_json(tmp_path, capsys):
     out = tmp_path / "bench.json"
-    assert main(["bench", "--repeats", "2", "--json", str(out)]) == 0
+    assert main(["bench", "--repeats", "2", "--sizes", "200,500", "--json", str(out)]) == 0
     table = capsys.readouterr().out
     assert "describe one scan" in table and "speed-up" in table
+    assert "query+insert" in table and "brute force" in table and "prune 0.01" in table
     figures = json.loads(out.read_text())
     assert figures["describe"]["points"] == 120_000
     assert figures["describe"]["median_ms"] > 0
     s = figures["solver_iteration"]
     assert s["fast_path"] == "woodbury" and s["speedup"] > 1  # n=700 < d: n x n beats d x d
+    index = figures["index"]
+    assert index["sizes"] == [200, 500]
+    for name, sectors in (("cartesian", 1), ("polar", 24)):
+        shape = index["shapes"][name]
+        assert shape["sectors"] == sectors and shape["params"]["sectors"] == sectors
+        assert [row["n"] for row in shape["scale"]] == [200, 500]
+        for row in shape["scale"]:
+            assert row["brute_force_query_ms"] > 0
+            cross = row["cross_season"]  # small databases: always within the time budget
+            assert cross["queries"] >= 10
+            assert 0 <= cross["top1_agreement"] <= 1 and 0 <= cross["recall_at_1_exact"] <= 1
+            for storage in ("float32", "float16"):
+                r = row[storage]
+                assert r["query_insert_ms"] > 0 and r["p95_query_insert_ms"] >= r["query_insert_ms"]
+                assert 0 <= r["recall_at_1_vs_exact"] <= 1 and r["recall_queries"] >= 5
+                assert 0 <= r["yaw_correct"] <= 1
+        m32, m16 = shape["memory"]["float32"], shape["memory"]["float16"]
+        assert m32["descriptor"] == 2 * m16["descriptor"] == 4 * shape["d_active"]
+        assert m32["total"] == m32["descriptor"] + m32["key"] + m32["yaw_key"] + m32["metadata"]
+        assert (m32["yaw_key"] > 0) == (sectors > 1)
+        drive = shape["drive"]
+        assert 0 <= drive["recall_at_1_index"] <= 1 and 0 <= drive["top1_agreement"] <= 1
+    pruning = index["pruning"]
+    assert pruning["active_rows"]["0.01"] < pruning["active_rows"]["0"]
+    assert (pruning["bytes_per_keyframe"]["0.01"]["float32"]
+            < pruning["bytes_per_keyframe"]["0"]["float32"])
+    assert 0 <= pruning["drive_vs_unpruned_exact"]["top1_agreement"] <= 1
+
+
+def test_bench_sizes_are_checked(capsys):
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["bench", "--sizes", "1000,abc"])
+    assert "comma-separated integers" in capsys.readouterr().err

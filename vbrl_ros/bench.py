@@ -4,7 +4,12 @@ Figures are medians over repeated runs in one process, so compare ratios
 within one run rather than absolute times across machines. The featurizer runs
 on one core (a compiled single pass plus numpy; its JIT compile is excluded by
 the warm-up runs); the solver uses whatever BLAS threads numpy has (the table
-says how many).
+says how many). The keyframe index section (:mod:`vbrl_ros.index_bench`:
+query + insert at ``--sizes`` keyframes, indexed vs brute force, Recall@1 vs
+brute force, bytes per keyframe, pruning) runs single-threaded kernels; its
+figures are under ``"index"`` in the ``--json`` output. The whole run takes
+about three minutes at the default sizes (most of it building the 100k
+databases and the brute-force references).
 """
 
 from __future__ import annotations
@@ -105,14 +110,35 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--repeats", type=int, default=30, help="timed runs per figure (default 30)")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the figures as JSON")
+    parser.add_argument(
+        "--sizes", type=_sizes, default=(1_000, 10_000, 100_000), metavar="N,N,...",
+        help="keyframe database sizes of the index section (default 1000,10000,100000; "
+             "'' skips it)",
+    )
     parser.set_defaults(func=run)
 
 
+def _sizes(text: str) -> tuple[int, ...]:
+    try:
+        sizes = tuple(int(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    if any(n < 10 for n in sizes):
+        raise argparse.ArgumentTypeError(f"sizes must be >= 10 keyframes, got {text!r}")
+    return tuple(sorted(set(sizes)))
+
+
 def run(args: argparse.Namespace) -> int:
+    from vbrl_ros import index_bench
+
     if args.repeats < 1:
         raise ValueError("--repeats must be >= 1")
     results = measure(repeats=args.repeats)
-    print(format_table(results))
+    print(format_table(results), flush=True)
+    if args.sizes:
+        results["index"] = index_bench.measure(args.sizes, repeats=max(args.repeats, 20))
+        print()
+        print(index_bench.format_table(results["index"]))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=2))

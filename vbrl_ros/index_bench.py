@@ -1,203 +1,306 @@
-"""Benchmark of :mod:`vbrl_ros.keyframe_index` (DESIGN.md §5: query + insert at 100k <= 10 ms).
+"""``vbrl bench`` index section: query + insert at 1k / 10k / 100k keyframes (DESIGN.md §5).
 
-``measure()`` returns a dict; ``format_table()`` renders it. Run with::
+For the Cartesian descriptor (default model, d ~ 7.9k, S = 1) and a polar one
+(S = 24, d ~ 15.7k active; see :mod:`vbrl_ros.bench_descriptors` for how it
+is made without a trained polar model) and both storages, a database is grown
+to each size from real simulated descriptors (:func:`replicate`) and timed:
 
-    python -m vbrl_ros.index_bench [--sizes 1000 10000 100000]
+- ``query_insert_ms``: median (and p95) of one indexed query (top 5, the
+  node's recency mask) followed by one insert, on one core;
+- ``brute_force_query_ms``: the linear scan the index replaces (every
+  keyframe, every shift), timed on at most ``_BRUTE_FORCE_ROWS`` keyframes and
+  scaled linearly to n;
+- ``recall_at_1_vs_exact``: how often the indexed top-1 is the brute-force
+  top-1, for queries that revisit a stored keyframe with fresh noise (polar:
+  also rotated by a random number of sectors; ``yaw_correct`` is how often the
+  returned shift undoes that rotation) — easy queries, an upper bound;
+- ``cross_season`` (float32): the same for real winter queries of the drive
+  against the grown summer database — top-1 agreement and Recall@1 (within
+  3 m) of index and brute force; the hard, realistic case (skipped where
+  brute force is too slow for 10 queries in ``_CROSS_SEASON_BUDGET_S``);
+- bytes per keyframe (descriptor, key, yaw key, metadata).
 
-Descriptors are synthetic but shaped like real ones: standardised (unit
-variance) rows, a low-rank smooth trajectory component (consecutive keyframes
-resemble each other, like a drive) plus per-row noise, scored with the default
-model's learned Eq. 4 weights (d = 7872). Queries are revisits: an earlier
-place's trajectory component with fresh noise (another session). Brute force
-is what :class:`~vbrl_ros.database.KeyframeDatabase` does today: blocked
-``WeightedL1Scorer.distances_compact`` over every keyframe, then a top-k
-selection. Figures are medians on one core (set OMP/OPENBLAS threads to 1 to
-be strict; the index's kernel is single-threaded anyway).
+``drive`` repeats the comparison on the real drive itself (winter queries
+against the summer database, the paper's cross-season protocol): top-1
+agreement and Recall@1 (match within 3 m) of index and brute force, and for
+polar the error of the yaw against the poses. ``pruning`` reports what a
+near-zero prune of the default model's learned weights saves and what it
+costs in Recall@1 against unpruned brute force.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import resource
+import math
 import time
 from typing import Any
 
 import numpy as np
 
+from vbrl_ros import bench_descriptors as bd
+from vbrl_ros.database import KeyframeDatabase
 from vbrl_ros.keyframe_index import KeyframeIndex
 from vbrl_ros.scoring import WeightedL1Scorer
 
-_BLOCK_ELEMENTS = 4 * 1024 * 1024
+DEFAULT_SIZES = (1_000, 10_000, 100_000)
+STORAGES = ("float32", "float16")
+PRUNE = 0.01
+REVISIT_RADIUS_M = 3.0
+_BRUTE_FORCE_ROWS = 10_000  # brute force is timed on at most this many keyframes, then scaled
+_EXACT_BUDGET = 1.5e10  # descriptor values x shifts the recall check may scan per size
+_CROSS_SEASON_BUDGET_S = 8.0  # brute-force seconds for real queries per size
 
 
-def default_weights() -> np.ndarray:
-    """The default model's active Eq. 4 weights (sum-normalised), or uniform 7872 if missing."""
-    try:
-        from vbrl_ros.default_model import load_default_model
-
-        return load_default_model().scorer().active_weights
-    except Exception:  # noqa: BLE001 - the benchmark still runs without the model file
-        return np.full(7872, 1.0 / 7872, np.float32)
-
-
-class SyntheticDrive:
-    """Realistic-ish compact descriptors: smooth low-rank trajectory + per-row noise, unit variance."""
-
-    def __init__(self, d: int, rank: int = 48, rho: float = 0.9, signal: float = 0.6,
-                 seed: int = 0) -> None:
-        rng = np.random.default_rng(seed)
-        spectrum = 1.0 / (1.0 + np.arange(rank)) ** 0.7
-        basis = rng.standard_normal((rank, d)) * spectrum[:, None]
-        basis *= np.sqrt(signal) / np.sqrt((basis**2).sum(0, keepdims=True))
-        self.basis = basis.astype(np.float32)
-        self.noise = np.float32(np.sqrt(1.0 - signal))
-        self.rank, self.rho, self.rng = rank, rho, rng
-        self._z = rng.standard_normal(rank)
-        self.latents: list[np.ndarray] = []
-
-    def next_batch(self, m: int) -> np.ndarray:
-        z = np.empty((m, self.rank))
-        for i in range(m):
-            self._z = self.rho * self._z + np.sqrt(1 - self.rho**2) * self.rng.standard_normal(self.rank)
-            z[i] = self._z
-        self.latents.append(z.astype(np.float32))
-        return self._render(z.astype(np.float32))
-
-    def revisit(self, index: int, drift: float = 0.2) -> np.ndarray:
-        """Another session's view of keyframe ``index``: same place, new noise, slight change."""
-        z = np.concatenate(self.latents)[index] if len(self.latents) > 1 else self.latents[0][index]
-        z = z + drift * self.rng.standard_normal(self.rank).astype(np.float32)
-        return self._render(z[None])[0]
-
-    def _render(self, z: np.ndarray) -> np.ndarray:
-        x = z @ self.basis
-        x += self.noise * self.rng.standard_normal(x.shape, dtype=np.float32)
-        return x
-
-
-def _brute_force(scorer: WeightedL1Scorer, query: np.ndarray, templates: np.ndarray,
-                 top_k: int) -> np.ndarray:
-    out = np.empty(len(templates), np.float64)
-    block = max(1, _BLOCK_ELEMENTS // templates.shape[1])
-    for start in range(0, len(templates), block):
-        out[start : start + block] = scorer.distances_compact(query, templates[start : start + block])
-    return np.argpartition(out, top_k)[:top_k]
-
-
-def _median_ms(times: list[float]) -> float:
-    return 1e3 * float(np.median(times))
-
-
-def measure(sizes: tuple[int, ...] = (1_000, 10_000, 100_000), repeats: int = 50,
-            recall_queries: int = 100, key_dim: int = 256, candidates: int = 128,
-            top_k: int = 5, seed: int = 0) -> dict[str, Any]:
-    weights = default_weights()
-    d = len(weights)
-    scorer = WeightedL1Scorer(weights.astype(np.float64))
-    results: dict[str, Any] = {
-        "machine": {"cpus": os.cpu_count(), "numpy": np.__version__},
-        "d": d, "key_dim": key_dim, "candidates": candidates, "top_k": top_k, "sizes": [],
-    }
-    for n in sizes:
-        drive = SyntheticDrive(d, seed=seed)
-        row: dict[str, Any] = {"n": n}
-        for storage in ("float32", "float16"):
-            drive = SyntheticDrive(d, seed=seed)
-            index = KeyframeIndex(weights, key_dim=key_dim, candidates=candidates, storage=storage)
-            index.reserve(n + repeats + 8)
-            start = time.perf_counter()
-            for chunk in range(0, n, 5_000):
-                index.add_batch(drive.next_batch(min(5_000, n - chunk)))
-            build_s = time.perf_counter() - start
-            rng = np.random.default_rng(seed + 1)
-            queries = [drive.revisit(int(i)) for i in rng.integers(0, n, repeats)]
-            fresh = drive.next_batch(repeats)  # new places, inserted after their query
-            index.search(queries[0], top_k)  # JIT warm-up
-            search_t, insert_t, both_t = [], [], []
-            for q, x in zip(queries, fresh):
-                allowed = np.ones(len(index), bool)
-                allowed[-50:] = False  # the node's recency exclusion
-                t0 = time.perf_counter()
-                index.search(q, top_k, allowed)
-                t1 = time.perf_counter()
-                index.add(x)
-                t2 = time.perf_counter()
-                search_t.append(t1 - t0)
-                insert_t.append(t2 - t1)
-                both_t.append(t2 - t0)
-            # Recall@1 of the index against exact search, same stored data
-            n_recall = recall_queries if n <= 10_000 else max(10, recall_queries // 5)
-            picks = rng.integers(0, n, n_recall)
-            agree_stored = agree_f32 = 0
-            for i in picks:
-                q = drive.revisit(int(i))
-                got = index.search(q, 1)[0][0]
-                agree_stored += got == index.exact_search(q, 1)[0][0]
-                if storage == "float16":
-                    # against exact float32 search on the original descriptors
-                    exact32 = _brute_force(scorer, q, index.descriptors().astype(np.float32), 1)[0]
-                    agree_f32 += got == exact32
-            row[storage] = {
-                "query_ms": _median_ms(search_t), "insert_ms": _median_ms(insert_t),
-                "query_insert_ms": _median_ms(both_t),
-                "p95_query_insert_ms": 1e3 * float(np.percentile(both_t, 95)),
-                "recall_at_1_vs_exact": agree_stored / n_recall, "recall_queries": n_recall,
-                "bytes_per_keyframe": index.bytes_per_keyframe(),
-                "allocated_mb": index.nbytes() / 2**20, "build_s": build_s,
-            }
-            if storage == "float16":
-                row[storage]["recall_at_1_vs_float32_exact"] = agree_f32 / n_recall
-            if storage == "float32":
-                templates = index.descriptors()
-                reps = max(3, min(repeats, 200_000 // n))
-                times = []
-                for q in queries[:reps]:
-                    t0 = time.perf_counter()
-                    _brute_force(scorer, q, templates, top_k)
-                    times.append(time.perf_counter() - t0)
-                row["brute_force_query_ms"] = _median_ms(times)
-            del index
-        results["sizes"].append(row)
-    results["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+def measure(sizes: tuple[int, ...] = DEFAULT_SIZES, repeats: int = 50, seed: int = 0) -> dict[str, Any]:
+    """All figures of the index section as a JSON-ready dict."""
+    scans = bd.simulated_scans(spacing_m=3.0)
+    sets = {"cartesian": bd.cartesian_set(scans), "polar": bd.polar_set(scans, seed=seed)}
+    results: dict[str, Any] = {"sizes": list(sizes), "repeats": repeats, "drive_scans": len(scans),
+                               "shapes": {}}
+    for name, data in sets.items():
+        params = KeyframeIndex(data.weights, sectors=data.sectors).options()
+        results["shapes"][name] = {
+            "d_active": data.descriptors.shape[1], "sectors": data.sectors, "params": params,
+            "memory": {s: _memory(data.scorer, s) for s in STORAGES},
+            "drive": drive_comparison(data, data),
+            "scale": _scale(data, sizes, repeats, seed),
+        }
+    results["pruning"] = _pruning(scans, sets["cartesian"])
     return results
 
 
+def _memory(scorer: WeightedL1Scorer, storage: str) -> dict[str, int]:
+    parts = KeyframeDatabase(scorer, "bench", storage=storage).bytes_breakdown()
+    return {**parts, "total": sum(parts.values())}
+
+
+def drive_comparison(data: bd.DescriptorSet, reference: bd.DescriptorSet) -> dict[str, Any]:
+    """Winter queries against the summer drive: index on ``data`` vs brute force on ``reference``."""
+    database, queries = np.flatnonzero(data.session == 0), np.flatnonzero(data.session == 1)
+    index = KeyframeIndex(data.weights, sectors=data.sectors)
+    index.add_batch(data.descriptors[database])
+    exact = index if reference is data else KeyframeIndex(reference.weights, sectors=reference.sectors)
+    if exact is not index:
+        exact.add_batch(reference.descriptors[database])
+    positions = data.poses[:, :2, 3]
+    agree = correct_index = correct_exact = 0
+    yaw_errors = []
+    for q in queries:
+        got = index.search_with_yaw(data.descriptors[q], 1)
+        ref = exact.search_with_yaw(reference.descriptors[q], 1, exact=True)
+        agree += got.indices[0] == ref.indices[0]
+        match = database[got.indices[0]]
+        correct_index += np.linalg.norm(positions[match] - positions[q]) < REVISIT_RADIUS_M
+        correct_exact += np.linalg.norm(positions[database[ref.indices[0]]] - positions[q]) < REVISIT_RADIUS_M
+        if data.sectors > 1 and np.linalg.norm(positions[match] - positions[q]) < REVISIT_RADIUS_M:
+            truth = bd.relative_yaw(data.poses, q, match)
+            yaw_errors.append(abs(math.remainder(got.yaws[0] - truth, 2 * math.pi)))
+    out = {"database": len(database), "queries": len(queries),
+           "top1_agreement": agree / len(queries),
+           "recall_at_1_index": correct_index / len(queries),
+           "recall_at_1_exact": correct_exact / len(queries)}
+    if yaw_errors:
+        out["yaw_error_deg_median"] = math.degrees(float(np.median(yaw_errors)))
+        out["yaw_error_deg_p95"] = math.degrees(float(np.percentile(yaw_errors, 95)))
+    return out
+
+
+def _queries(data: bd.DescriptorSet, index: KeyframeIndex, count: int,
+             rng: np.random.Generator) -> list[tuple[int, np.ndarray, int]]:
+    """(stored keyframe, query, sector roll) revisits: fresh noise, polar rotated by whole sectors."""
+    out = []
+    for target in rng.integers(0, len(index), count):
+        x = index.descriptor(int(target)) + 0.1 * rng.standard_normal(index.dimension).astype(np.float32)
+        roll = int(rng.integers(0, data.sectors))
+        out.append((int(target), np.roll(x.reshape(data.sectors, -1), roll, axis=0).ravel(), roll))
+    return out
+
+
+class _Feed:
+    """Hands out the rows of :func:`bd.replicate` in any batch sizes."""
+
+    def __init__(self, base: np.ndarray, total: int, seed: int) -> None:
+        self._chunks = bd.replicate(base, total, seed=seed)
+        self._pending = np.empty((0, base.shape[1]), np.float32)
+
+    def take(self, count: int, copy: bool = True) -> np.ndarray:
+        """``count`` rows; ``copy=False`` may return a view the next call overwrites."""
+        if not len(self._pending):
+            self._pending = next(self._chunks)  # a view of the generator's reused buffer
+        if count <= len(self._pending) and not copy:
+            out, self._pending = self._pending[:count], self._pending[count:]
+            return out
+        parts = []
+        while count > 0:
+            if not len(self._pending):
+                self._pending = next(self._chunks)
+            parts.append(self._pending[:count].copy())
+            count -= len(parts[-1])
+            self._pending = self._pending[len(parts[-1]) :]
+        return np.concatenate(parts)
+
+
+def _scale(data: bd.DescriptorSet, sizes: tuple[int, ...], repeats: int, seed: int) -> list[dict]:
+    rows: list[dict[str, Any]] = [{"n": n} for n in sorted(sizes)]
+    base = data.descriptors[data.session == 0]
+    for storage in STORAGES:
+        index = KeyframeIndex(data.weights, sectors=data.sectors, storage=storage)
+        total = max(sizes) + repeats * len(sizes)
+        index.reserve(total)
+        feed, rng = _Feed(base, total, seed), np.random.default_rng([seed, 7])
+        for row in rows:
+            start = time.perf_counter()
+            while len(index) < row["n"]:
+                index.add_batch(feed.take(min(4096, row["n"] - len(index)), copy=False))
+            build_s = time.perf_counter() - start
+            row[storage] = {**_time_and_recall(data, index, feed.take(repeats), rng),
+                            "build_s": build_s}
+            if storage == "float32":
+                row.update(_brute_force(index, rng))
+                row["cross_season"] = _cross_season(data, index, row["brute_force_query_ms"])
+        del index
+    return rows
+
+
+def _time_and_recall(data: bd.DescriptorSet, index: KeyframeIndex, inserts: np.ndarray,
+                     rng: np.random.Generator) -> dict[str, Any]:
+    queries = _queries(data, index, len(inserts), rng)
+    index.search_with_yaw(queries[0][1], 5)  # compile outside the timing
+    both, query_t, insert_t = [], [], []
+    for (_, q, _), x in zip(queries, inserts):
+        allowed = np.ones(len(index), bool)
+        allowed[-50:] = False  # the node's recency exclusion
+        t0 = time.perf_counter()
+        index.search_with_yaw(q, 5, allowed)
+        t1 = time.perf_counter()
+        index.add(x)
+        t2 = time.perf_counter()
+        both.append(t2 - t0), query_t.append(t1 - t0), insert_t.append(t2 - t1)
+    # exact search abandons most keyframes after one sector here: ~n * d per query
+    # (float16 also widens every row, about as much again)
+    budget = _EXACT_BUDGET / (1 if index.storage == "float32" else 2)
+    n_recall = int(min(len(queries), max(5, budget // (len(index) * index.dimension))))
+    agree = yaw_ok = 0
+    for target, q, roll in queries[:n_recall]:
+        got = index.search_with_yaw(q, 1)
+        ref = index.search_with_yaw(q, 1, exact=True)
+        agree += got.indices[0] == ref.indices[0]
+        yaw_ok += got.indices[0] == target and got.shifts[0] == roll
+    ms = lambda t: 1e3 * float(np.median(t))  # noqa: E731
+    return {"query_ms": ms(query_t), "insert_ms": ms(insert_t), "query_insert_ms": ms(both),
+            "p95_query_insert_ms": 1e3 * float(np.percentile(both, 95)),
+            "recall_at_1_vs_exact": agree / n_recall, "recall_queries": n_recall,
+            "yaw_correct": yaw_ok / n_recall}
+
+
+def _cross_season(data: bd.DescriptorSet, index: KeyframeIndex,
+                  brute_force_ms: float) -> dict[str, Any] | None:
+    """Real winter queries against the grown summer database: index vs brute force.
+
+    Keyframe i of the database is mostly summer scan i % B and gets its
+    position. Brute force bounds how many queries fit the budget (``None``
+    when fewer than 10 would: too few to mean anything).
+    """
+    count = min(40, int(_CROSS_SEASON_BUDGET_S / max(brute_force_ms * 1e-3, 1e-9)))
+    if count < 10:
+        return None
+    summer, winter = np.flatnonzero(data.session == 0), np.flatnonzero(data.session == 1)
+    positions = data.poses[:, :2, 3]
+    where = positions[summer][np.arange(len(index)) % len(summer)]
+    agree = right = right_exact = 0
+    picks = winter[:: max(1, len(winter) // count)][:count]
+    for q in picks:
+        got = index.search(data.descriptors[q], 1)[0][0]
+        ref = index.exact_search(data.descriptors[q], 1)[0][0]
+        agree += got == ref
+        right += np.linalg.norm(where[got] - positions[q]) < REVISIT_RADIUS_M
+        right_exact += np.linalg.norm(where[ref] - positions[q]) < REVISIT_RADIUS_M
+    return {"queries": len(picks), "top1_agreement": agree / len(picks),
+            "recall_at_1_index": right / len(picks), "recall_at_1_exact": right_exact / len(picks)}
+
+
+def _brute_force(index: KeyframeIndex, rng: np.random.Generator) -> dict[str, Any]:
+    """The plain linear scan over every keyframe and shift (what the index replaces)."""
+    from vbrl_ros.weighted_l1_kernels import min_over_shifts_f32
+
+    n = len(index)
+    rows = np.arange(min(n, _BRUTE_FORCE_ROWS), dtype=np.int64)
+    distances = np.empty(len(rows), np.float32)
+    shifts = np.empty(len(rows), np.int64)
+    store = index.descriptors()
+    times = []
+    for _ in range(2):
+        q = index.descriptor(int(rng.integers(0, n)))
+        t0 = time.perf_counter()
+        min_over_shifts_f32(store, rows, q, index.column_weights, index.sectors, distances, shifts)
+        np.argpartition(distances, min(5, len(rows) - 1))
+        times.append(time.perf_counter() - t0)
+    return {"brute_force_query_ms": 1e3 * float(np.median(times)) * n / len(rows),
+            "brute_force_timed_rows": len(rows)}
+
+
+def _pruning(scans: list, full: bd.DescriptorSet) -> dict[str, Any]:
+    pruned = bd.cartesian_set(scans, prune=PRUNE)
+    return {
+        "prune": PRUNE,
+        "active_rows": {"0": full.descriptors.shape[1], str(PRUNE): pruned.descriptors.shape[1]},
+        "bytes_per_keyframe": {
+            "0": {s: _memory(full.scorer, s)["total"] for s in STORAGES},
+            str(PRUNE): {s: _memory(pruned.scorer, s)["total"] for s in STORAGES},
+        },
+        "drive_vs_unpruned_exact": drive_comparison(pruned, full),
+    }
+
+
 def format_table(results: dict[str, Any]) -> str:
-    header = ("keyframes", "brute force", "index f32 q+i (p95)", "index f16 q+i (p95)",
-              "R@1 f32", "R@1 f16 (vs f32 exact)", "B/kf f32", "B/kf f16", "build f32")
+    """The index section as text tables."""
+    header = ("shape", "keyframes", "storage", "query+insert (p95)", "brute force",
+              "top-1 = brute (revisits)", "yaw ok", "real queries: top-1 = brute, R@1 (brute)",
+              "B/keyframe")
     rows = []
-    for r in results["sizes"]:
-        a, b = r["float32"], r["float16"]
-        rows.append((
-            f"{r['n']:,}", f"{r['brute_force_query_ms']:.1f} ms",
-            f"{a['query_insert_ms']:.2f} ms ({a['p95_query_insert_ms']:.2f})",
-            f"{b['query_insert_ms']:.2f} ms ({b['p95_query_insert_ms']:.2f})",
-            f"{a['recall_at_1_vs_exact']:.3f}/{a['recall_queries']}",
-            f"{b['recall_at_1_vs_exact']:.3f} ({b['recall_at_1_vs_float32_exact']:.3f})",
-            str(a["bytes_per_keyframe"]), str(b["bytes_per_keyframe"]), f"{a['build_s']:.1f} s",
-        ))
-    widths = [max(len(str(x[i])) for x in (header, *rows)) for i in range(len(header))]
+    for name, shape in results["shapes"].items():
+        for row in shape["scale"]:
+            for storage in STORAGES:
+                r = row[storage]
+                rows.append((
+                    name, f"{row['n']:,}", storage,
+                    f"{r['query_insert_ms']:.2f} ms ({r['p95_query_insert_ms']:.2f})",
+                    f"{row['brute_force_query_ms']:.0f} ms" if storage == "float32" else "",
+                    f"{r['recall_at_1_vs_exact']:.3f}/{r['recall_queries']}",
+                    f"{r['yaw_correct']:.3f}" if shape["sectors"] > 1 else "",
+                    _cross_cell(row.get("cross_season")) if storage == "float32" else "",
+                    str(shape["memory"][storage]["total"]),
+                ))
+    lines = _render(header, rows)
+    for name, shape in results["shapes"].items():
+        m, d = shape["memory"]["float32"], shape["drive"]
+        yaw = (f", yaw error median {d['yaw_error_deg_median']:.1f} deg"
+               if "yaw_error_deg_median" in d else "")
+        lines.append(
+            f"{name}: d={shape['d_active']} S={shape['sectors']}; bytes/keyframe float32 = "
+            f"{m['descriptor']} descriptor + {m['key']} key + {m['yaw_key']} yaw key + "
+            f"{m['metadata']} metadata; drive ({d['queries']} winter queries vs {d['database']}): "
+            f"top-1 = brute force {d['top1_agreement']:.3f}, Recall@1 {d['recall_at_1_index']:.3f} "
+            f"(brute force {d['recall_at_1_exact']:.3f}){yaw}")
+    p = results["pruning"]
+    b, d = p["bytes_per_keyframe"], p["drive_vs_unpruned_exact"]
+    lines.append(
+        f"prune {p['prune']} of the default model's weights: {p['active_rows']['0']} -> "
+        f"{p['active_rows'][str(p['prune'])]} rows, bytes/keyframe float32 {b['0']['float32']} -> "
+        f"{b[str(p['prune'])]['float32']}, float16 {b['0']['float16']} -> "
+        f"{b[str(p['prune'])]['float16']}; drive top-1 = unpruned brute force "
+        f"{d['top1_agreement']:.3f}, Recall@1 {d['recall_at_1_index']:.3f} "
+        f"(unpruned {d['recall_at_1_exact']:.3f})")
+    return "\n".join(lines)
+
+
+def _cross_cell(c: dict[str, Any] | None) -> str:
+    if c is None:
+        return "(too slow to check)"
+    return (f"{c['top1_agreement']:.2f}, {c['recall_at_1_index']:.2f} "
+            f"({c['recall_at_1_exact']:.2f}) /{c['queries']}")
+
+
+def _render(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> list[str]:
+    widths = [max(len(str(r[i])) for r in (header, *rows)) for i in range(len(header))]
     line = lambda r: "  ".join(str(c).ljust(w) for c, w in zip(r, widths)).rstrip()  # noqa: E731
-    foot = (f"d={results['d']}, key_dim={results['key_dim']}, candidates={results['candidates']}, "
-            f"top_k={results['top_k']}, peak RSS {results['peak_rss_mb']:.0f} MB")
-    return "\n".join([line(header), "  ".join("-" * w for w in widths), *map(line, rows), foot])
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[1_000, 10_000, 100_000])
-    parser.add_argument("--repeats", type=int, default=50)
-    parser.add_argument("--json", help="also write the figures as JSON")
-    args = parser.parse_args(argv)
-    results = measure(tuple(args.sizes), repeats=args.repeats)
-    print(format_table(results))
-    if args.json:
-        with open(args.json, "w") as handle:
-            json.dump(results, handle, indent=2)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    return [line(header), "  ".join("-" * w for w in widths), *map(line, rows)]
