@@ -14,7 +14,7 @@ import numpy as np
 
 from vbrl_ros.database import KeyframeDatabase
 from vbrl_ros.model import VBRLModel
-from vbrl_ros.registration import downsample_for_storage, verify_loop
+from vbrl_ros.registration import downsample_for_storage, verify_loop, yaw_guess
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,7 @@ class LoopClosure:
     query_session: str
     match_session: str
     distance: float  # Eq. 4, lower = more similar
+    yaw: float = 0.0  # recogniser's yaw of T_query_match, radians (polar grid; 0 for Cartesian)
     T_query_match: np.ndarray | None = None
     fitness: float = float("nan")
     covariance: np.ndarray | None = None  # 6x6 over [x, y, z, roll, pitch, yaw]
@@ -103,10 +104,14 @@ class LoopClosureDetector:
                 query_id=self.database.next_keyframe_id, match_id=candidate.keyframe_id,
                 query_stamp=stamp, match_stamp=candidate.stamp, query_session=cfg.session,
                 match_session=candidate.session, distance=float(candidate.distance),
+                yaw=float(candidate.yaw),
             )
             if cfg.verify:
                 match_cloud = self.database.cloud(candidate.index)
-                check = verify_loop(cloud, match_cloud, voxel_size=cfg.verification_voxel)
+                # The polar grid's yaw puts KISS-ICP inside its +-10 degree basin
+                # for revisits in any direction (Cartesian: yaw 0, identity guess).
+                check = verify_loop(cloud, match_cloud, initial_guess=yaw_guess(candidate.yaw),
+                                    voxel_size=cfg.verification_voxel)
                 if not check.converged or check.fitness < cfg.min_fitness:
                     rejected += 1
                     continue

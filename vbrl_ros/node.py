@@ -113,12 +113,13 @@ class VbrlNode(Node):
         return NodeSettings.from_values(values)
 
     def _open_database(self) -> KeyframeDatabase:
-        scorer = self.model.scorer()
+        scorer = self.model.scorer(prune=self.settings.weight_prune)
         model_id = self.model.identity()
         path = self.settings.database_path
         if path and Path(path).exists():
+            # a saved database keeps its own storage type (and refuses another prune)
             return KeyframeDatabase.load(path, scorer, model_id)
-        return KeyframeDatabase(scorer, model_id)
+        return KeyframeDatabase(scorer, model_id, storage=self.settings.descriptor_storage)
 
     def _next_session(self) -> int:
         numeric = [int(name) for name in self.database.sessions if name.isdigit()]

@@ -13,6 +13,8 @@ itself. Unverified closures have NaN pose, fitness and covariance.
     fitness                         KISS-ICP inlier fraction in [0, 1]
     x, y, z, qx, qy, qz, qw         T_query<-match: maps match-frame points into the query frame
     cov_00 ... cov_55               6x6 row-major covariance of [x, y, z, roll, pitch, yaw]
+    descriptor_yaw                  the recogniser's yaw of T_query<-match, radians (polar
+                                    grid; 0 for the Cartesian grid), before verification
 
 LIO-SAM convention (``lio_sam_topic``): ``Float64MultiArray`` data =
 ``[t_query, t_match]`` per closure.
@@ -33,6 +35,7 @@ CLOSURE_COLUMNS: tuple[str, ...] = (
     "query_session", "match_session", "distance", "fitness",
     "x", "y", "z", "qx", "qy", "qz", "qw",
     *(f"cov_{i}{j}" for i in range(6) for j in range(6)),
+    "descriptor_yaw",  # appended last: consumers index columns by name, older ones by position
 )
 
 
@@ -47,7 +50,8 @@ def closure_row(closure: LoopClosure) -> np.ndarray:
         row[8:11] = T[:3, 3]
         row[11:15] = Rotation.from_matrix(T[:3, :3]).as_quat()  # x, y, z, w
     if closure.covariance is not None:
-        row[15:] = np.asarray(closure.covariance).ravel()
+        row[15:51] = np.asarray(closure.covariance).ravel()
+    row[51] = closure.yaw
     return row
 
 
