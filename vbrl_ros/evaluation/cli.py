@@ -64,6 +64,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="per-query top matches of the full VBRL model as JSON")
     parser.add_argument("--ablations", action=argparse.BooleanOptionalAction, default=True,
                         help="also evaluate MODEL.<ablation>.npz found next to the model (on)")
+    parser.add_argument("--exact", action="store_true",
+                        help="VBRL: brute-force retrieval over every keyframe (and every sector shift) "
+                             "instead of the keyframe index the node uses")
+    parser.add_argument("--check-exact", action="store_true",
+                        help="also run the full model by unpruned brute force (an extra table row) "
+                             "and report how often its top-1 equals the retrieval's")
+    parser.add_argument("--prune", type=float, default=0.01,
+                        help="VBRL: rows weighing < PRUNE x the largest row weight are not stored "
+                             "or scored, as the node's weight_prune (0.01)")
     parser.add_argument("--scan-context", action=argparse.BooleanOptionalAction, default=True,
                         help="also evaluate the Scan Context baseline (on)")
     parser.add_argument("--sc-lidar-height", type=float, default=2.0,
@@ -151,6 +160,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--radius must be a positive number of metres")
     if args.exclude < 1:
         raise ValueError("--exclude must be >= 1 (a scan must not match itself)")
+    if not 0.0 <= args.prune < 1.0:
+        raise ValueError("--prune must be in [0, 1)")
     if args.align is not None and args.against is None:
         raise ValueError("--align only applies to P2 (--against)")
     alignment = load_alignment(args.align) if args.align is not None else None
@@ -166,37 +177,54 @@ def run(args: argparse.Namespace) -> int:
         if source.positions is None or not np.isfinite(source.positions).all():
             raise ValueError(f"{source.name}: every keyframe needs a pose for the ground truth "
                              "(--poses kiss-icp or file:poses.txt); matching itself never uses them")
-    methods: list[Any] = [VBRLMethod(name, m) for name, m in models.items()]
+    methods: list[Any] = [VBRLMethod(name, m, exact=args.exact, prune=args.prune)
+                          for name, m in models.items()]
     if args.scan_context:
         methods.append(ScanContextMethod(sc_config, args.sc_candidates))
     radii = sorted({float(args.radius), *REPORT_RADII})
     protocol = "P1" if args.against is None else "P2"
 
+    def retrieve(method: Any) -> RetrievalResults:
+        fn = method.distances_fn(queries, database)
+        if protocol == "P1":
+            return online_retrieval(len(queries), args.exclude, TOP_K, fn, progress=not args.quiet)
+        return cross_session_retrieval(len(queries), len(database), TOP_K, fn,
+                                       progress=not args.quiet)
+
+    def score(results: RetrievalResults) -> dict[float, RetrievalMetrics]:
+        if protocol == "P1":
+            return {r: evaluate_online(queries.positions, results.indices, results.distances, r,
+                                       args.exclude) for r in radii}
+        return {r: evaluate_cross_session(queries.positions, database.positions, results.indices,
+                                          results.distances, r, alignment) for r in radii}
+
     metrics: dict[str, dict[float, RetrievalMetrics]] = {}
     full_results: RetrievalResults | None = None
     for method in methods:
-        fn = method.distances_fn(queries, database)
-        if protocol == "P1":
-            results = online_retrieval(len(queries), args.exclude, TOP_K, fn, progress=not args.quiet)
-            metrics[method.name] = {r: evaluate_online(queries.positions, results.indices,
-                                                       results.distances, r, args.exclude)
-                                    for r in radii}
-        else:
-            results = cross_session_retrieval(len(queries), len(database), TOP_K, fn,
-                                              progress=not args.quiet)
-            metrics[method.name] = {r: evaluate_cross_session(queries.positions, database.positions,
-                                                              results.indices, results.distances, r,
-                                                              alignment)
-                                    for r in radii}
+        results = retrieve(method)
+        metrics[method.name] = score(results)
         if method.name == FULL_NAME:
             full_results = results
-
+    agreement = None
+    if args.check_exact and full_results is not None:
+        # the reference: brute force over every keyframe and shift, nothing pruned
+        reference_name = f"{FULL_NAME}, exact"
+        exact = retrieve(VBRLMethod(reference_name, models[FULL_NAME], exact=True, prune=0.0))
+        metrics[reference_name] = score(exact)
+        asked = full_results.database_limit > 0
+        same = full_results.indices[asked, 0] == exact.indices[asked, 0]
+        agreement = {"queries": int(asked.sum()), "same_top1": int(same.sum()),
+                     "retrieval": "exact" if args.exact else "index", "prune": args.prune}
     for note in notes:
         print(f"note: {note}")
     title = (f"P1 {queries.name} (exclude {args.exclude})" if protocol == "P1"
              else f"P2 {queries.name} -> {database.name}")
     print(f"{title}: {len(queries)} query keyframes, {len(database)} database keyframes")
     print(format_table(metrics, radii))
+    if agreement is not None:
+        print(f"{FULL_NAME} ({agreement['retrieval']}, prune {args.prune:g}): top-1 equals the "
+              f"unpruned brute-force top-1 on {agreement['same_top1']} of {agreement['queries']} "
+              "queries")
 
     if args.json is not None:
         report = {
@@ -207,6 +235,8 @@ def run(args: argparse.Namespace) -> int:
             "align": None if alignment is None else alignment.tolist(),
             "num_query_keyframes": len(queries), "num_database_keyframes": len(database),
             "methods": list(metrics), "notes": notes,
+            "retrieval": "exact" if args.exact else "index", "prune": args.prune,
+            "grid": config.grid.kind, "exact_agreement": agreement,
             "metrics": {name: {f"{r:g}": m.summary() for r, m in by_r.items()}
                         for name, by_r in metrics.items()},
         }

@@ -24,14 +24,19 @@ from tqdm import tqdm
 
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.datasets import open_source
-from vbrl_ros.evaluation.retrieval import DistancesFn, select_top_k
+from vbrl_ros.evaluation.retrieval import DistancesFn
 from vbrl_ros.features import Featurizer
+from vbrl_ros.keyframe_index import KeyframeIndex
 from vbrl_ros.model import VBRLModel
 from vbrl_ros.scan_context import ScanContextConfig, ScanContextDatabase, scan_context
+from vbrl_ros.scoring import WeightedL1Scorer
 from vbrl_ros.training.keyframes import _bounded_map, default_workers, select_keyframes, source_points
 
 __all__ = ["SourceDescriptors", "describe_source", "VBRLMethod", "ScanContextMethod",
-           "weighted_l1_top_k"]
+           "scorer_top_k"]
+
+#: Keyframes a method retrieves per query; the metrics need Recall@5.
+TOP_K_RETRIEVED = 5
 
 
 @dataclass
@@ -106,36 +111,60 @@ def describe_source(
         )
 
 
-def weighted_l1_top_k(
+def scorer_top_k(
     queries: np.ndarray,
     templates: np.ndarray,
-    weights: np.ndarray,
+    scorer: WeightedL1Scorer,
     k: int = 1,
     limits: Sequence[int] | np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Top-k (indices, distances) of Σ_r w_r |q_r − t_r| for every query; (n_q, k) each.
+    *,
+    exact: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Top-k (indices, distances, yaws) of the scorer's Eq. 4 for every query; (n_q, k) each.
 
-    Query q sees ``templates[:limits[q]]`` (None = all). Inputs are already
-    standardised and restricted to the active rows. Ties go to the lower index.
+    Query q sees ``templates[:limits[q]]`` (None = all). Inputs are standardised
+    and compacted by ``scorer``; with a polar scorer distances are minimised over
+    sector shifts and yaws say how the query is rotated from its match.
+    ``exact=False`` retrieves through :class:`KeyframeIndex` as the node does
+    (exact distances for what it returns). Ties go to the lower index; padding
+    is index -1, distance inf.
     """
     Q = np.asarray(queries, dtype=np.float32)
     T = np.asarray(templates, dtype=np.float32)
-    w = np.asarray(weights, dtype=np.float32)
-    lim = np.full(len(Q), len(T)) if limits is None else np.asarray(limits)
+    lim = np.full(len(Q), len(T)) if limits is None else np.asarray(limits, dtype=np.int64)
     out_i = np.full((len(Q), k), -1, dtype=np.int64)
     out_d = np.full((len(Q), k), np.inf)
-    for q in np.flatnonzero(lim > 0):  # one vectorised (limit, k_rows) product per query
-        dist = np.abs(T[: lim[q]] - Q[q]) @ w
-        out_i[q], out_d[q] = select_top_k(np.arange(lim[q]), dist.astype(np.float64), k)
-    return out_i, out_d
+    out_y = np.zeros((len(Q), k))
+    if len(T) == 0 or len(Q) == 0:
+        return out_i, out_d, out_y
+    index = KeyframeIndex(scorer.active_weights, sectors=scorer.sectors)
+    # queries in increasing database prefix: the index only ever grows
+    for q in np.argsort(lim, kind="stable"):
+        if lim[q] <= 0:
+            continue
+        if len(index) < lim[q]:
+            index.add_batch(T[len(index): lim[q]])
+        found = index.search_with_yaw(Q[q], k, exact=exact)
+        n = len(found.indices)
+        out_i[q, :n], out_d[q, :n], out_y[q, :n] = found.indices, found.distances, found.yaws
+    return out_i, out_d, out_y
 
 
 class VBRLMethod:
-    """Eq. 4 distances with one model's standardisation and importances."""
+    """Eq. 4 distances with one model's standardisation and importances.
 
-    def __init__(self, name: str, model: VBRLModel) -> None:
-        self.name, self.model = name, model
-        self.scorer = model.scorer()
+    Retrieval goes through :class:`KeyframeIndex` like the online node's
+    (``exact=False``), or brute force over every template (and every sector
+    shift of a polar grid) with ``exact=True``. ``prune`` is the node's
+    ``weight_prune``: rows weighing less than that share of the largest row
+    weight are neither stored nor scored.
+    """
+
+    def __init__(self, name: str, model: VBRLModel, *, exact: bool = False,
+                 prune: float = 0.0) -> None:
+        self.name, self.model, self.exact = name, model, exact
+        self.scorer = model.scorer(prune=prune)
+        self.yaws: dict[int, np.ndarray] = {}  # query -> yaws of its top-K (last run)
 
     def _compact(self, raw: np.ndarray) -> np.ndarray:
         rows = self.scorer.active_rows
@@ -146,16 +175,21 @@ class VBRLMethod:
     def distances_fn(self, queries: SourceDescriptors, database: SourceDescriptors) -> DistancesFn:
         Q = self._compact(queries.vbrl)
         T = Q if database is queries else self._compact(database.vbrl)
-        w = self.scorer.active_weights
+        index = KeyframeIndex(self.scorer.active_weights, sectors=self.scorer.sectors)
+        self.yaws = {}
 
         def fn(i: int, candidates: np.ndarray) -> np.ndarray:
-            n = len(candidates)
-            # The drivers ask for database prefixes: a slice avoids a gather copy.
-            if n and candidates[-1] - candidates[0] == n - 1:
-                templates = T[candidates[0]: candidates[0] + n]
-            else:
-                templates = T[candidates]
-            return (np.abs(templates - Q[i]) @ w).astype(np.float64)
+            # The drivers ask for database prefixes 0..limit-1 in increasing
+            # limit (P1 grows it with i, P2 keeps it): insert lazily, like online.
+            limit = int(candidates[-1]) + 1 if len(candidates) else 0
+            if len(index) < limit:
+                index.add_batch(T[len(index): limit])
+            allowed = None if len(index) == limit else np.arange(len(index)) < limit
+            found = index.search_with_yaw(Q[i], TOP_K_RETRIEVED, allowed, exact=self.exact)
+            self.yaws[i] = found.yaws
+            out = np.full(len(candidates), np.inf)  # not retrieved: never a match
+            out[found.indices] = found.distances
+            return out
 
         return fn
 

@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from vbrl_ros.config import VBRLConfig
-from vbrl_ros.evaluation.methods import weighted_l1_top_k
+from vbrl_ros.evaluation.methods import scorer_top_k
 from vbrl_ros.evaluation.metrics import evaluate_retrieval
 from vbrl_ros.model import VBRLModel
 from vbrl_ros.training.fit import fit_model
@@ -100,10 +100,9 @@ def _pooled_scores(model: VBRLModel, descriptors: np.ndarray, labels: np.ndarray
     """(Recall@1 hits, revisit queries, max F1 per evaluated pair/source) of ``model`` on these rows."""
     scorer = model.scorer()
     X = scorer.compact(model.standardize(descriptors))
-    w = scorer.active_weights
     hits, revisits, f1s = 0, 0, []
     for q_rows, db_rows, limits in _protocol_pairs(labels, keyframe_index, source_of_row, exclude):
-        idx, dist = weighted_l1_top_k(X[q_rows], X[db_rows], w, 1, limits)
+        idx, dist, _ = scorer_top_k(X[q_rows], X[db_rows], scorer, 1, limits)
         m = evaluate_retrieval(positions[q_rows], positions[db_rows], idx, dist, radius, limits)
         if m.num_revisits:
             hits += round(m.recall_at_1 * m.num_revisits)

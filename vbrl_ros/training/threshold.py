@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from vbrl_ros.evaluation.methods import weighted_l1_top_k
+from vbrl_ros.evaluation.methods import scorer_top_k
 from vbrl_ros.evaluation.metrics import evaluate_retrieval, pr_curve
 from vbrl_ros.model import VBRLModel
 from vbrl_ros.training.cv import _protocol_pairs
@@ -45,7 +45,7 @@ def recommend_threshold(model: VBRLModel, descriptors: np.ndarray, labels: np.nd
         pairs = (_protocol_pairs(np.zeros(len(rows), int), ki, src, exclude) if protocol == "P1"
                  else _protocol_pairs(lab, ki, src, exclude) if len(np.unique(lab)) >= 2 else ())
         for q_rows, db_rows, limits in pairs:
-            idx, dist = weighted_l1_top_k(X[q_rows], X[db_rows], scorer.active_weights, 1, limits)
+            idx, dist, _ = scorer_top_k(X[q_rows], X[db_rows], scorer, 1, limits)
             m = evaluate_retrieval(pos[q_rows], pos[db_rows], idx, dist, radius, limits)
             revisits += m.num_revisits
             ok = np.isfinite(dist[:, 0])
