@@ -46,6 +46,8 @@ def test_bench_prints_a_table_and_writes_json(tmp_path, capsys):
     figures = json.loads(out.read_text())
     assert figures["describe"]["points"] == 120_000
     assert figures["describe"]["median_ms"] > 0
+    assert figures["describe_polar"]["dimension"] > figures["describe"]["dimension"]
+    assert figures["describe_polar"]["median_ms"] > 0
     s = figures["solver_iteration"]
     assert s["fast_path"] == "woodbury" and s["speedup"] > 1  # n=700 < d: n x n beats d x d
     index = figures["index"]
