@@ -21,11 +21,30 @@ and release the GIL.
 
 from __future__ import annotations
 
+import heapq
+
 import numpy as np
 from numba import njit
 
 BLOCK = 128  # keyframes per key block
 MAX_KEY_DIM = 256  # uint16 partial sums stay exact up to here
+
+
+def energy_balanced_groups(energy: np.ndarray, groups: int,
+                           rng: np.random.Generator) -> np.ndarray:
+    """Group of each column: greedy longest-processing-time partition of ``energy``.
+
+    Columns heaviest first (random order among equals) each join the group with
+    the least energy so far, so group energies end up nearly equal.
+    """
+    order = np.lexsort((rng.permutation(len(energy)), -energy))
+    heap = [(0.0, g) for g in range(groups)]
+    group = np.empty(len(energy), np.int64)
+    for column in order:
+        total, g = heapq.heappop(heap)
+        group[column] = g
+        heapq.heappush(heap, (total + float(energy[column]), g))
+    return group
 
 
 class KeyCodec:
@@ -41,8 +60,10 @@ class KeyCodec:
         self.sectors, self.key_dim, self.yaw_dim = sectors, key_dim, yaw_dim
         rng = np.random.default_rng([seed, 0x1DE7])
         w64 = np.asarray(column_weights, np.float64)
-        # balanced random partitions of the columns into groups, random signs
-        self.group = rng.permutation(np.arange(width) % key_dim).astype(np.int64)
+        # Candidate-key groups of equal weight energy (heaviest columns alone), random
+        # signs. A random partition let one heavy column set the int8 scale of every
+        # group: with a model whose weight sits on a few rows most keys rounded to 0.
+        self.group = energy_balanced_groups(w64**2, key_dim, rng)
         self.signed = ((rng.integers(0, 2, width) * 2 - 1) * w64).astype(np.float32)
         self.yaw_group = rng.permutation(np.arange(width) % max(yaw_dim, 1)).astype(np.int64)
         self.yaw_signed = ((rng.integers(0, 2, width) * 2 - 1) * w64).astype(np.float32)
