@@ -42,7 +42,7 @@ def test_bench_prints_a_table_and_writes_json(tmp_path, capsys):
     assert main(["bench", "--repeats", "2", "--sizes", "200,500", "--json", str(out)]) == 0
     table = capsys.readouterr().out
     assert "describe one scan" in table and "speed-up" in table
-    assert "query+insert" in table and "brute force" in table and "prune 0.01" in table
+    assert "query+insert" in table and "brute force" in table and "prune 0.001" in table
     figures = json.loads(out.read_text())
     assert figures["describe"]["points"] == 120_000
     assert figures["describe"]["median_ms"] > 0
@@ -73,8 +73,8 @@ def test_bench_prints_a_table_and_writes_json(tmp_path, capsys):
         drive = shape["drive"]
         assert 0 <= drive["recall_at_1_index"] <= 1 and 0 <= drive["top1_agreement"] <= 1
     pruning = index["pruning"]
-    assert pruning["active_rows"]["0.01"] < pruning["active_rows"]["0"]
-    assert (pruning["bytes_per_keyframe"]["0.01"]["float32"]
+    assert pruning["active_rows"]["0.001"] < pruning["active_rows"]["0"]
+    assert (pruning["bytes_per_keyframe"]["0.001"]["float32"]
             < pruning["bytes_per_keyframe"]["0"]["float32"])
     assert 0 <= pruning["drive_vs_unpruned_exact"]["top1_agreement"] <= 1
 
