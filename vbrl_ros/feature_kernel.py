@@ -29,6 +29,32 @@ _TWO_PI = 2.0 * math.pi
 _HALF_PI = 0.5 * math.pi
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _accumulate(counts, moments, rasters, octants, voxel, x, y, z, pu, pv, pz, half) -> None:
+    """Add one point to its voxel: count, moment sums, the three rasters, its octant.
+
+    Shared by both grids so their features are computed the same way; (x, y)
+    and (pu, pv) are the voxel's own frame and raster cell (sensor axes on the
+    Cartesian grid, radial/tangential on the polar one).
+    """
+    counts[voxel] += 1
+    m = moments[voxel]
+    m[0] += x
+    m[1] += y
+    m[2] += z
+    m[3] += x * x
+    m[4] += y * y
+    m[5] += z * z
+    m[6] += x * y
+    m[7] += x * z
+    m[8] += y * z
+    rasters[0, voxel, pv, pu] += 1.0
+    rasters[1, voxel, pz, pu] += 1.0
+    rasters[2, voxel, pz, pv] += 1.0
+    octant = (1 if pu >= half else 0) + (2 if pv >= half else 0) + (4 if pz >= half else 0)
+    octants[voxel, octant] += 1.0
+
+
 @njit(cache=True, nogil=True)
 def accumulate_voxels(
     points: np.ndarray,  # (N, >=3) float32 or float64
@@ -77,22 +103,7 @@ def accumulate_voxels(
         ix, iy = isx >> shift, isy >> shift
         px, py, pz = isx & (size - 1), isy & (size - 1), isz & (size - 1)
         voxel = (layer * cells + iy) * cells + ix
-        counts[voxel] += 1
-        m = moments[voxel]
-        m[0] += x
-        m[1] += y
-        m[2] += z
-        m[3] += x * x
-        m[4] += y * y
-        m[5] += z * z
-        m[6] += x * y
-        m[7] += x * z
-        m[8] += y * z
-        rasters[0, voxel, py, px] += 1.0
-        rasters[1, voxel, pz, px] += 1.0
-        rasters[2, voxel, pz, py] += 1.0
-        octant = (1 if px >= half else 0) + (2 if py >= half else 0) + (4 if pz >= half else 0)
-        octants[voxel, octant] += 1.0
+        _accumulate(counts, moments, rasters, octants, voxel, x, y, z, px, py, pz, half)
     return counts, moments, rasters, octants
 
 
@@ -188,20 +199,5 @@ def accumulate_polar_voxels(
         c, s = centre_cos[sector], centre_sin[sector]
         lx = x * c + y * s
         ly = y * c - x * s
-        counts[voxel] += 1
-        m = moments[voxel]
-        m[0] += lx
-        m[1] += ly
-        m[2] += z
-        m[3] += lx * lx
-        m[4] += ly * ly
-        m[5] += z * z
-        m[6] += lx * ly
-        m[7] += lx * z
-        m[8] += ly * z
-        rasters[0, voxel, pa, pr] += 1.0
-        rasters[1, voxel, pz, pr] += 1.0
-        rasters[2, voxel, pz, pa] += 1.0
-        octant = (1 if pr >= half else 0) + (2 if pa >= half else 0) + (4 if pz >= half else 0)
-        octants[voxel, octant] += 1.0
+        _accumulate(counts, moments, rasters, octants, voxel, lx, ly, z, pr, pa, pz, half)
     return counts, moments, rasters, octants
