@@ -156,6 +156,26 @@ def test_yaw_refinement_matches_the_scorer():
 # -- agreement with brute force -------------------------------------------------------------
 
 
+def test_shift_completion_recovers_best_shifts_the_yaw_key_misses():
+    x, weights, _ = _polar(300, sectors=12, seed=9)
+    rng = np.random.default_rng(10)
+    queries = [_roll(x[i] + 0.6 * rng.standard_normal(x.shape[1]).astype(np.float32), 12,
+                     int(rng.integers(0, 12))) for i in rng.integers(0, 300, 40)]
+    # every row reaches stage 3, but a 1-group yaw key tries one poorly chosen shift
+    options = dict(sectors=12, candidates=300, rerank=300, yaw_dim=1, yaw_shifts=1)
+    without = KeyframeIndex(weights, complete_rows=0, **options)
+    completed = KeyframeIndex(weights, complete_rows=300, **options)  # all: must be exact
+    without.add_batch(x), completed.add_batch(x)
+    missed = 0
+    for q in queries:
+        exact = completed.search_with_yaw(q, 3, exact=True)
+        found = completed.search_with_yaw(q, 3)
+        for field in ("indices", "distances", "shifts"):
+            np.testing.assert_array_equal(getattr(found, field), getattr(exact, field))
+        missed += not np.array_equal(without.search_with_yaw(q, 3).indices, exact.indices)
+    assert missed >= 5  # the stage this tests is what fixes them
+
+
 def test_synthetic_clustered_top1_matches_exact():
     x, centres = _clustered(4000, 1024, 200, 2)
     index = KeyframeIndex(_weights(1024), key_dim=128, candidates=64)
@@ -264,7 +284,7 @@ def test_incremental_add_after_queries():
 def test_state_round_trip(tmp_path, storage):
     x, weights, _ = _polar(500, seed=6)
     index = KeyframeIndex(weights, sectors=12, key_dim=40, candidates=50, rerank=20, yaw_dim=6,
-                          yaw_shifts=3, yaw_refine=True, seed=7, storage=storage)
+                          yaw_shifts=3, complete_rows=5, yaw_refine=True, seed=7, storage=storage)
     index.add_batch(x)
     path = tmp_path / "db.npz"
     np.savez(path, other=np.arange(3), **index.state())
@@ -278,6 +298,9 @@ def test_state_round_trip(tmp_path, storage):
     restored.add(x[0])
     assert len(restored) == 501
     state = index.state()
+    # files written before complete_rows existed get its default
+    legacy = KeyframeIndex.from_state({**state, "index_params": state["index_params"][:-1]})
+    assert legacy.complete_rows == KeyframeIndex(weights, sectors=12).complete_rows == 8
     with pytest.raises(ValueError, match="lacks"):
         KeyframeIndex.from_state({"index_format": np.array("vbrl_ros.keyframe_index")})
     with pytest.raises(ValueError, match="version"):

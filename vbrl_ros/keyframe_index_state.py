@@ -21,7 +21,8 @@ if TYPE_CHECKING:
 INDEX_FORMAT = "vbrl_ros.keyframe_index"
 INDEX_FORMAT_VERSION = 2
 _PARAMS = ("sectors", "key_dim", "candidates", "rerank", "yaw_dim", "yaw_shifts", "yaw_refine",
-           "seed")
+           "seed", "complete_rows")
+_LEGACY_PARAMS = len(_PARAMS) - 1  # written before complete_rows existed: its default applies
 _KEY_CHECK_ROWS = 64
 
 
@@ -54,7 +55,7 @@ def index_from_state(cls: type[KeyframeIndex], arrays: Mapping[str, np.ndarray],
             f"keyframe index state version {version}; this code reads {INDEX_FORMAT_VERSION}"
         )
     params = get("params")
-    if params.shape != (len(_PARAMS),) or params.dtype.kind not in "iu":
+    if params.shape not in ((len(_PARAMS),), (_LEGACY_PARAMS,)) or params.dtype.kind not in "iu":
         raise ValueError(f"index params have shape {params.shape}, expected ({len(_PARAMS)},) integers")
     options: dict[str, Any] = {name: int(value) for name, value in zip(_PARAMS, params)}
     options["yaw_refine"] = bool(options["yaw_refine"])
