@@ -42,7 +42,7 @@ def test_bench_prints_a_table_and_writes_json(tmp_path, capsys):
     assert main(["bench", "--repeats", "2", "--sizes", "200,500", "--json", str(out)]) == 0
     table = capsys.readouterr().out
     assert "describe one scan" in table and "speed-up" in table
-    assert "query+insert" in table and "brute force" in table and "prune 0.001" in table
+    assert "query+insert" in table and "brute force" in table and "prune 0.0001" in table
     figures = json.loads(out.read_text())
     assert figures["describe"]["points"] == 120_000
     assert figures["describe"]["median_ms"] > 0

@@ -43,7 +43,7 @@ from vbrl_ros.scoring import WeightedL1Scorer
 
 DEFAULT_SIZES = (1_000, 10_000, 100_000)
 STORAGES = ("float32", "float16")
-PRUNE = 0.001
+PRUNE = 0.0001
 REVISIT_RADIUS_M = 3.0
 _BRUTE_FORCE_ROWS = 10_000  # brute force is timed on at most this many keyframes, then scaled
 _EXACT_BUDGET = 1.5e10  # descriptor values x shifts the recall check may scan per size

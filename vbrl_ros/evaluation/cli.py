@@ -70,9 +70,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--check-exact", action="store_true",
                         help="also run the full model by unpruned brute force (an extra table row) "
                              "and report how often its top-1 equals the retrieval's")
-    parser.add_argument("--prune", type=float, default=0.001,
+    parser.add_argument("--prune", type=float, default=0.0001,
                         help="VBRL: rows weighing < PRUNE x the largest row weight are not stored "
-                             "or scored, as the node's weight_prune (0.001)")
+                             "or scored, as the node's weight_prune (0.0001)")
     parser.add_argument("--scan-context", action=argparse.BooleanOptionalAction, default=True,
                         help="also evaluate the Scan Context baseline (on)")
     parser.add_argument("--sc-lidar-height", type=float, default=2.0,
