@@ -96,6 +96,26 @@ def test_p2_with_alignment(trained, tmp_path, monkeypatch):
     assert again == pytest.approx(report["metrics"]["VBRL"]["3"], nan_ok=True)
 
 
+def test_check_exact_adds_brute_force_agreement_and_key_headroom(trained, tmp_path, monkeypatch,
+                                                                 capsys):
+    (summer, winter), model = trained
+    out = tmp_path / "p2.json"
+    assert vbrl(monkeypatch, "eval", winter, "--against", summer, "--model", model, "--check-exact",
+                "--no-ablations", "--no-scan-context", "--json", out, "--quiet", "--workers",
+                "1") == 0
+    report = _read(out)
+    assert report["methods"] == ["VBRL", "VBRL, exact"]
+    agreement = report["exact_agreement"]
+    n = report["num_query_keyframes"]
+    assert agreement["queries"] == n and agreement["same_top1"] >= n - 1  # tiny database
+    headroom = agreement["key_rank"]
+    assert headroom["queries"] == n
+    assert headroom["within"]["0.005"] <= headroom["within"]["0.01"] <= headroom["within"]["0.05"] <= n
+    assert 0.0 <= headroom["median_share"] < 1.0
+    printed = capsys.readouterr().out
+    assert "top-1 equals the unpruned brute-force top-1" in printed and "key headroom" in printed
+
+
 def test_matching_never_uses_poses(trained, tmp_path, monkeypatch):
     (summer, _), model = trained
     zeroed = tmp_path / "zeroed"

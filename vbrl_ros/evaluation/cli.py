@@ -153,6 +153,7 @@ def write_matches(path: Path, results: RetrievalResults, query_scans: np.ndarray
 
 
 def run(args: argparse.Namespace) -> int:
+    from vbrl_ros.evaluation import headroom
     from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod, describe_source
     from vbrl_ros.scan_context import ScanContextConfig
 
@@ -215,6 +216,11 @@ def run(args: argparse.Namespace) -> int:
         same = full_results.indices[asked, 0] == exact.indices[asked, 0]
         agreement = {"queries": int(asked.sum()), "same_top1": int(same.sum()),
                      "retrieval": "exact" if args.exact else "index", "prune": args.prune}
+        full = next(m for m in methods if m.name == FULL_NAME)
+        shares = headroom.key_rank_shares(full.new_index(), full.compact(queries.vbrl),
+                                          full.compact(database.vbrl), exact.indices[:, 0],
+                                          exact.database_limit)
+        agreement["key_rank"] = headroom.summary(shares)
     for note in notes:
         print(f"note: {note}")
     title = (f"P1 {queries.name} (exclude {args.exclude})" if protocol == "P1"
@@ -225,6 +231,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{FULL_NAME} ({agreement['retrieval']}, prune {args.prune:g}): top-1 equals the "
               f"unpruned brute-force top-1 on {agreement['same_top1']} of {agreement['queries']} "
               "queries")
+        print(headroom.describe(agreement["key_rank"]))
 
     if args.json is not None:
         report = {

@@ -166,16 +166,21 @@ class VBRLMethod:
         self.scorer = model.scorer(prune=prune)
         self.yaws: dict[int, np.ndarray] = {}  # query -> yaws of its top-K (last run)
 
-    def _compact(self, raw: np.ndarray) -> np.ndarray:
+    def compact(self, raw: np.ndarray) -> np.ndarray:
+        """Standardised active rows of raw descriptors (n, d): what the index stores."""
         rows = self.scorer.active_rows
         # Standardise only the rows that score: the others have zero weight.
         out = (raw[:, rows].astype(np.float64) - self.model.feature_mean[rows]) / self.model.feature_scale[rows]
         return out.astype(np.float32)
 
+    def new_index(self) -> KeyframeIndex:
+        """An empty index for this method's scorer, as the node builds it."""
+        return KeyframeIndex(self.scorer.active_weights, sectors=self.scorer.sectors)
+
     def distances_fn(self, queries: SourceDescriptors, database: SourceDescriptors) -> DistancesFn:
-        Q = self._compact(queries.vbrl)
-        T = Q if database is queries else self._compact(database.vbrl)
-        index = KeyframeIndex(self.scorer.active_weights, sectors=self.scorer.sectors)
+        Q = self.compact(queries.vbrl)
+        T = Q if database is queries else self.compact(database.vbrl)
+        index = self.new_index()
         self.yaws = {}
 
         def fn(i: int, candidates: np.ndarray) -> np.ndarray:
