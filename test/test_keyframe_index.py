@@ -329,6 +329,10 @@ def test_rejects_bad_input():
         KeyframeIndex(_weights(50), key_dim=300)
     with pytest.raises(ValueError, match="yaw_shifts"):
         KeyframeIndex(np.ones(24, np.float32), sectors=4, yaw_shifts=5)
+    with pytest.raises(ValueError, match="complete_rows"):
+        KeyframeIndex(np.ones(24, np.float32), sectors=4, complete_rows=-1)
+    with pytest.raises(ValueError, match="yaw_dim"):
+        KeyframeIndex(np.ones(24, np.float32), yaw_dim=3)  # one sector: no yaw key
 
 
 def test_key_groups_balance_weight_energy_so_heavy_columns_stand_alone():

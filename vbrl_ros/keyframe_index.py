@@ -57,6 +57,7 @@ from typing import Any
 import numpy as np
 
 from vbrl_ros import index_keys as kk
+from vbrl_ros.index_parameters import checked_int, search_parameters
 from vbrl_ros import weighted_l1_kernels as wk
 from vbrl_ros.keyframe_index_state import (  # noqa: F401 - re-exported
     INDEX_FORMAT,
@@ -92,26 +93,6 @@ class SearchResult:
     yaws: np.ndarray  # float64
 
 
-def default_parameters(width: int, sectors: int) -> dict[str, int]:
-    """Defaults for R = ``width`` active columns and S sectors, tuned with ``vbrl bench``.
-
-    Query + insert <= 10 ms at 100k keyframes on one core for the Cartesian
-    (S = 1, d ~ 7.9k: key scan ~3.5 ms + ~6 us per candidate) and polar
-    (S = 24, d ~ 15.7k: key scan ~3.5 ms, yaw keys ~2.2 us per candidate,
-    exact ~3.5 us per re-ranked shift) shapes, spending the rest of the budget
-    on candidates, which is what recall on cross-season queries needs most.
-    """
-    polar = sectors > 1
-    return {
-        "key_dim": min(kk.MAX_KEY_DIM, width),
-        "candidates": 1024 if polar else 512,
-        "rerank": 128 if polar else 512,
-        "yaw_dim": min(width, 32) if polar else 0,
-        "yaw_shifts": min(sectors, 2),
-        "complete_rows": 8 if polar else 0,
-    }
-
-
 def _grown(array: np.ndarray, needed: int) -> np.ndarray:
     capacity = len(array)
     if needed <= capacity:
@@ -119,12 +100,6 @@ def _grown(array: np.ndarray, needed: int) -> np.ndarray:
     out = np.empty((max(needed, 2 * capacity, _INITIAL_CAPACITY), *array.shape[1:]), array.dtype)
     out[:capacity] = array
     return out
-
-
-def _positive_int(name: str, value: object, low: int, high: int) -> int:
-    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or not low <= value <= high:
-        raise ValueError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
-    return int(value)
 
 
 class KeyframeIndex:
@@ -140,7 +115,7 @@ class KeyframeIndex:
     (S * yaw_dim float32 per keyframe; 0 when S = 1). ``yaw_refine``: refine the
     yaw of the returned keyframes by a parabola through D at k - 1, k, k + 1
     (two more distances each; the distance itself stays that of shift k).
-    ``None`` picks :func:`default_parameters`. ``storage``: ``"float32"`` or
+    ``None`` picks :func:`~vbrl_ros.index_parameters.default_parameters`. ``storage``: ``"float32"`` or
     ``"float16"`` (half the memory; distances from the rounded descriptors).
     ``key_clip_sigma``: see :class:`~vbrl_ros.index_keys.KeyCodec`.
     """
@@ -166,25 +141,19 @@ class KeyframeIndex:
             raise ValueError("weights must be a non-empty 1-D array (the scorer's active weights)")
         if not np.all(np.isfinite(weights)) or np.any(weights < 0):
             raise ValueError("weights must be finite and non-negative")
-        sectors = _positive_int("sectors", sectors, 1, len(weights))
+        sectors = checked_int("sectors", sectors, 1, len(weights))
         if len(weights) % sectors:
             raise ValueError(f"{len(weights)} weights do not split into {sectors} sectors")
         tied = weights.reshape(sectors, -1)
         if np.any(tied != tied[0]):
             raise ValueError("weights must be equal across sectors (tied) for every column")
         width = tied.shape[1]
-        defaults = default_parameters(width, sectors)
-        pick = lambda value, name: defaults[name] if value is None else value  # noqa: E731
-        self.key_dim = _positive_int("key_dim", pick(key_dim, "key_dim"), 1,
-                                     min(width, kk.MAX_KEY_DIM))
-        self.candidates = _positive_int("candidates", pick(candidates, "candidates"), 1, 2**31 - 1)
-        self.rerank = _positive_int("rerank", pick(rerank, "rerank"), 1, 2**31 - 1)
-        low = 1 if sectors > 1 else 0
-        self.yaw_dim = _positive_int("yaw_dim", pick(yaw_dim, "yaw_dim"), low,
-                                     width if sectors > 1 else 0)
-        self.yaw_shifts = _positive_int("yaw_shifts", pick(yaw_shifts, "yaw_shifts"), 1, sectors)
-        self.complete_rows = _positive_int("complete_rows", pick(complete_rows, "complete_rows"), 0,
-                                           2**31 - 1)
+        chosen = search_parameters(width, sectors, key_dim=key_dim, candidates=candidates,
+                                   rerank=rerank, yaw_dim=yaw_dim, yaw_shifts=yaw_shifts,
+                                   complete_rows=complete_rows)
+        self.key_dim, self.candidates = chosen["key_dim"], chosen["candidates"]
+        self.rerank, self.complete_rows = chosen["rerank"], chosen["complete_rows"]
+        self.yaw_dim, self.yaw_shifts = chosen["yaw_dim"], chosen["yaw_shifts"]
         if storage not in _STORAGE:
             raise ValueError(f"storage must be one of {sorted(_STORAGE)}, got {storage!r}")
         if not key_clip_sigma > 0:

@@ -1,0 +1,56 @@
+"""The keyframe index's search parameters: defaults per descriptor shape, and their checks.
+
+What each parameter does is in :class:`~vbrl_ros.keyframe_index.KeyframeIndex`;
+the defaults are what ``vbrl bench`` measured to fit query + insert in 10 ms
+at 100k keyframes on one core.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vbrl_ros.index_keys import MAX_KEY_DIM
+
+_MAX_INT = 2**31 - 1
+
+
+def default_parameters(width: int, sectors: int) -> dict[str, int]:
+    """Defaults for R = ``width`` active columns and S sectors, tuned with ``vbrl bench``.
+
+    Query + insert <= 10 ms at 100k keyframes on one core for the Cartesian
+    (S = 1, d ~ 7.9k: key scan ~3.5 ms + ~6 us per candidate) and polar
+    (S = 24, d ~ 15.7k: key scan ~3.5 ms, yaw keys ~2 us per candidate,
+    exact ~3.5 us per re-ranked shift, ~0.7 ms to complete 8 rows) shapes,
+    spending the rest of the budget on candidates, which is what recall on
+    cross-season queries needs most.
+    """
+    polar = sectors > 1
+    return {
+        "key_dim": min(MAX_KEY_DIM, width),
+        "candidates": 1024 if polar else 512,
+        "rerank": 128 if polar else 512,
+        "yaw_dim": min(width, 32) if polar else 0,
+        "yaw_shifts": min(sectors, 2),
+        "complete_rows": 8 if polar else 0,
+    }
+
+
+def search_parameters(width: int, sectors: int, **given: int | None) -> dict[str, int]:
+    """The search parameters for R = ``width`` columns and S sectors: ``given`` or the default.
+
+    ``ValueError`` names the first out of range.
+    """
+    chosen = {name: default if given.get(name) is None else given[name]
+              for name, default in default_parameters(width, sectors).items()}
+    polar = sectors > 1
+    limits = {"key_dim": (1, min(width, MAX_KEY_DIM)), "candidates": (1, _MAX_INT),
+              "rerank": (1, _MAX_INT), "yaw_dim": (1, width) if polar else (0, 0),
+              "yaw_shifts": (1, sectors), "complete_rows": (0, _MAX_INT)}
+    return {name: checked_int(name, chosen[name], *limits[name]) for name in limits}
+
+
+def checked_int(name: str, value: object, low: int, high: int) -> int:
+    """``value`` as an int if it is one in [low, high]; else ``ValueError`` naming ``name``."""
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or not low <= value <= high:
+        raise ValueError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
+    return int(value)
