@@ -108,9 +108,12 @@ def test_check_exact_adds_brute_force_agreement_and_key_headroom(trained, tmp_pa
     agreement = report["exact_agreement"]
     n = report["num_query_keyframes"]
     assert agreement["queries"] == n and agreement["same_top1"] >= n - 1  # tiny database
-    headroom = agreement["key_rank"]
-    assert headroom["queries"] == n
-    assert headroom["within"]["0.005"] <= headroom["within"]["0.01"] <= headroom["within"]["0.05"] <= n
+    headroom = agreement["key_rank"]  # over the correct brute-force matches
+    exact_recall = report["metrics"]["VBRL, exact"]["3"]
+    assert headroom["queries"] == round(exact_recall["recall_at_1"] * exact_recall["num_revisits"])
+    assert headroom["queries"] > 0 and headroom["radius"] == 3.0
+    within = headroom["within"]
+    assert within["0.005"] <= within["0.01"] <= within["0.05"] <= headroom["queries"]
     assert 0.0 <= headroom["median_share"] < 1.0
     printed = capsys.readouterr().out
     assert "top-1 equals the unpruned brute-force top-1" in printed and "key headroom" in printed

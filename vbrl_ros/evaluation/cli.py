@@ -24,7 +24,13 @@ from typing import Any
 import numpy as np
 
 from vbrl_ros.evaluation.matches_json import matches_to_json
-from vbrl_ros.evaluation.metrics import RetrievalMetrics, evaluate_cross_session, evaluate_online
+from vbrl_ros.evaluation.metrics import (
+    RetrievalMetrics,
+    apply_transform,
+    correct_mask,
+    evaluate_cross_session,
+    evaluate_online,
+)
 from vbrl_ros.evaluation.retrieval import RetrievalResults, cross_session_retrieval, online_retrieval
 from vbrl_ros.io.atomic import atomic_write
 from vbrl_ros.model import VBRLModel, load_model
@@ -216,11 +222,17 @@ def run(args: argparse.Namespace) -> int:
         same = full_results.indices[asked, 0] == exact.indices[asked, 0]
         agreement = {"queries": int(asked.sum()), "same_top1": int(same.sum()),
                      "retrieval": "exact" if args.exact else "index", "prune": args.prune}
+        # headroom of the matches that count: brute-force top-1s within the radius
+        query_positions = (queries.positions if alignment is None
+                           else apply_transform(queries.positions, alignment))
+        correct = correct_mask(query_positions, database.positions, exact.indices[:, :1],
+                               args.radius, exact.database_limit)[:, 0]
         full = next(m for m in methods if m.name == FULL_NAME)
         shares = headroom.key_rank_shares(full.new_index(), full.compact(queries.vbrl),
-                                          full.compact(database.vbrl), exact.indices[:, 0],
+                                          full.compact(database.vbrl),
+                                          np.where(correct, exact.indices[:, 0], -1),
                                           exact.database_limit)
-        agreement["key_rank"] = headroom.summary(shares)
+        agreement["key_rank"] = {"radius": float(args.radius), **headroom.summary(shares)}
     for note in notes:
         print(f"note: {note}")
     title = (f"P1 {queries.name} (exclude {args.exclude})" if protocol == "P1"

@@ -7,8 +7,10 @@ re-rank: 1 % at 100k polar keyframes, 0.5 % Cartesian. An evaluation set is
 small enough that the index re-ranks most of it, so agreeing with brute force
 there says little about 100k. This measures the margin instead: where the
 brute-force top-1 ranks under the candidate key, as a share of the database
-the query saw. A top-1 ranked within the first 1 % would still reach the
-re-rank at 100k keyframes if the rest of that map ranked like this one.
+the query saw, for the queries whose brute-force top-1 is a true match (the
+others have nothing to lose). A match ranked within the first 1 % would still
+reach the re-rank at 100k keyframes if the rest of that map ranked like this
+one.
 """
 
 from __future__ import annotations
@@ -54,5 +56,5 @@ def describe(result: dict[str, Any]) -> str:
     """One line for the ``vbrl eval`` output."""
     n, within = result["queries"], result["within"]
     parts = ", ".join(f"{within[f'{s:g}']} in the first {100 * s:g} %" for s in SHARES)
-    return (f"candidate key headroom: of {n} brute-force top-1s, {parts} of the key ranking "
-            "(stage 1 keeps ~1 % of a 100k polar map, ~0.5 % Cartesian)")
+    return (f"candidate key headroom: of {n} correct brute-force top-1s, {parts} of the key "
+            "ranking (stage 1 keeps ~1 % of a 100k polar map, ~0.5 % Cartesian)")
