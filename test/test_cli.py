@@ -73,8 +73,9 @@ def test_bench_prints_a_table_and_writes_json(tmp_path, capsys):
         drive = shape["drive"]
         assert 0 <= drive["recall_at_1_index"] <= 1 and 0 <= drive["top1_agreement"] <= 1
     pruning = index["pruning"]
-    assert pruning["active_rows"]["0.001"] < pruning["active_rows"]["0"]
-    assert (pruning["bytes_per_keyframe"]["0.001"]["float32"]
+    level = str(pruning["prune"])
+    assert pruning["active_rows"][level] < pruning["active_rows"]["0"]
+    assert (pruning["bytes_per_keyframe"][level]["float32"]
             < pruning["bytes_per_keyframe"]["0"]["float32"])
     assert 0 <= pruning["drive_vs_unpruned_exact"]["top1_agreement"] <= 1
 
