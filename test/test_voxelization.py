@@ -60,3 +60,14 @@ def test_rejects_bad_shapes_and_subdivisions():
         grid.assign(np.zeros((5, 2)))
     with pytest.raises(ValueError, match="power of two"):
         grid.assign(np.zeros((5, 3)), 6)
+
+
+def test_each_grid_refuses_the_other_kind_of_config():
+    from vbrl_ros.polar_grid import PolarVoxelGrid
+
+    with pytest.raises(ValueError, match="CartesianVoxelGrid needs a cartesian grid config"):
+        CartesianVoxelGrid(VoxelGridConfig(kind="polar"))
+    with pytest.raises(ValueError, match="PolarVoxelGrid needs a polar grid config"):
+        PolarVoxelGrid(VoxelGridConfig())
+    polar = PolarVoxelGrid(VoxelGridConfig(kind="polar"))
+    assert polar.n_voxels == polar.config.n_voxels and len(polar.z_edges) == polar.config.n_layers + 1

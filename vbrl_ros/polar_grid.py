@@ -42,30 +42,23 @@ import numpy as np
 
 from vbrl_ros.config import VoxelGridConfig
 from vbrl_ros.feature_kernel import ATAN_COEFFICIENTS
-from vbrl_ros.voxelization import VoxelAssignment, layer_bands
+from vbrl_ros.voxelization import LayeredGrid, VoxelAssignment
 
 TWO_PI = 2.0 * np.pi
 
 
-class PolarVoxelGrid:
+class PolarVoxelGrid(LayeredGrid):
     """Vectorised assignment of points to the voxels of a polar :class:`VoxelGridConfig`."""
 
     kind = "polar"
 
     def __init__(self, config: VoxelGridConfig) -> None:
-        if config.kind != self.kind:
-            raise ValueError(f"PolarVoxelGrid needs a polar grid config, got {config.kind!r}")
-        self.config = config
-        self._z_edges, self._z_slope, self._z_intercept = layer_bands(config)
+        super().__init__(config)
         centres = (np.arange(config.sectors) + 0.5) * (TWO_PI / config.sectors)
         # rotating by -centre takes a point into its sector's local frame
         self.centre_cos = np.cos(centres)
         self.centre_sin = np.sin(centres)
         self._bounds: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-
-    @property
-    def n_voxels(self) -> int:
-        return self.config.n_voxels
 
     @property
     def rings(self) -> int:
@@ -74,18 +67,6 @@ class PolarVoxelGrid:
     @property
     def sectors(self) -> int:
         return self.config.sectors
-
-    @property
-    def z_edges(self) -> np.ndarray:
-        return self._z_edges
-
-    @property
-    def z_slope(self) -> np.ndarray:
-        return self._z_slope
-
-    @property
-    def z_intercept(self) -> np.ndarray:
-        return self._z_intercept
 
     def angular_bounds(self, subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
         """(cos, sin) of the boundary directions of the ``sectors * subdivisions`` angular bins.

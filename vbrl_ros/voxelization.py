@@ -54,6 +54,35 @@ def layer_bands(config: VoxelGridConfig) -> tuple[np.ndarray, np.ndarray, np.nda
     return edges, 1.0 / heights, np.arange(config.n_layers) - edges[:-1] / heights
 
 
+class LayeredGrid:
+    """What every grid shares: its config (checked to be of ``kind``) and its z layer bands."""
+
+    kind = ""
+
+    def __init__(self, config: VoxelGridConfig) -> None:
+        if config.kind != self.kind:
+            raise ValueError(f"{type(self).__name__} needs a {self.kind} grid config, "
+                             f"got {config.kind!r}")
+        self.config = config
+        self._z_edges, self._z_slope, self._z_intercept = layer_bands(config)
+
+    @property
+    def n_voxels(self) -> int:
+        return self.config.n_voxels
+
+    @property
+    def z_edges(self) -> np.ndarray:
+        return self._z_edges
+
+    @property
+    def z_slope(self) -> np.ndarray:
+        return self._z_slope
+
+    @property
+    def z_intercept(self) -> np.ndarray:
+        return self._z_intercept
+
+
 class VoxelGrid(Protocol):
     """What the featurizer and the reports need of a grid, Cartesian or polar."""
 
@@ -80,32 +109,10 @@ def make_grid(config: VoxelGridConfig) -> VoxelGrid:
     return CartesianVoxelGrid(config)
 
 
-class CartesianVoxelGrid:
+class CartesianVoxelGrid(LayeredGrid):
     """Vectorised assignment of points to the voxels of a :class:`VoxelGridConfig`."""
 
     kind = "cartesian"
-
-    def __init__(self, config: VoxelGridConfig) -> None:
-        if config.kind != self.kind:
-            raise ValueError(f"CartesianVoxelGrid needs a cartesian grid config, got {config.kind!r}")
-        self.config = config
-        self._z_edges, self._z_slope, self._z_intercept = layer_bands(config)
-
-    @property
-    def n_voxels(self) -> int:
-        return self.config.n_voxels
-
-    @property
-    def z_edges(self) -> np.ndarray:
-        return self._z_edges
-
-    @property
-    def z_slope(self) -> np.ndarray:
-        return self._z_slope
-
-    @property
-    def z_intercept(self) -> np.ndarray:
-        return self._z_intercept
 
     def voxel_layer(self) -> np.ndarray:
         """Layer (0 = bottom) of every voxel, shape (n_voxels,)."""
