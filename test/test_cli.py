@@ -80,6 +80,13 @@ def test_bench_prints_a_table_and_writes_json(tmp_path, capsys):
     assert 0 <= pruning["drive_vs_unpruned_exact"]["top1_agreement"] <= 1
 
 
+def test_bench_polar_model_must_be_polar(capsys):
+    from vbrl_ros.default_model import DEFAULT_MODEL_PATH
+
+    assert main(["bench", "--sizes", "", "--polar-model", str(DEFAULT_MODEL_PATH)]) == 2
+    assert "needs a polar model" in capsys.readouterr().err
+
+
 def test_bench_sizes_are_checked(capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["bench", "--sizes", "1000,abc"])

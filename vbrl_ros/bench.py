@@ -9,7 +9,8 @@ query + insert at ``--sizes`` keyframes, indexed vs brute force, Recall@1 vs
 brute force, bytes per keyframe, pruning) runs single-threaded kernels; its
 figures are under ``"index"`` in the ``--json`` output. The whole run takes
 about three minutes at the default sizes (most of it building the 100k
-databases and the brute-force references).
+databases and the brute-force references). Its polar rows use a stand-in for
+a trained polar model unless ``--polar-model`` names one.
 """
 
 from __future__ import annotations
@@ -121,6 +122,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="keyframe database sizes of the index section (default 1000,10000,100000; "
              "'' skips it)",
     )
+    parser.add_argument(
+        "--polar-model", type=Path, metavar="MODEL",
+        help="a trained polar model (vbrl train --grid polar) for the index section's polar rows; "
+             "default: a stand-in derived from the built-in Cartesian model",
+    )
     parser.set_defaults(func=run)
 
 
@@ -139,10 +145,20 @@ def run(args: argparse.Namespace) -> int:
 
     if args.repeats < 1:
         raise ValueError("--repeats must be >= 1")
+    polar_model = None
+    if args.polar_model is not None:
+        from vbrl_ros.model import load_model
+
+        polar_model = load_model(args.polar_model)
+        if polar_model.config.grid.kind != "polar":
+            raise ValueError(f"{args.polar_model}: --polar-model needs a polar model "
+                             f"(vbrl train --grid polar), this one is {polar_model.config.grid.kind}")
     results = measure(repeats=args.repeats)
     print(format_table(results), flush=True)
     if args.sizes:
-        results["index"] = index_bench.measure(args.sizes, repeats=max(args.repeats, 20))
+        results["index"] = index_bench.measure(
+            args.sizes, repeats=max(args.repeats, 20), polar_model=polar_model,
+            polar_model_name=None if args.polar_model is None else str(args.polar_model))
         print()
         print(index_bench.format_table(results["index"]))
     if args.json:

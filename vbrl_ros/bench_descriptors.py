@@ -8,7 +8,8 @@ featurizers and standardised.
   Eq. 4 weights; ``prune`` as in :meth:`VBRLModel.scorer`).
 - **Polar** (S sectors, the default model's layers and range): the polar
   featurizer; standardisation statistics are pooled over the drive and tied
-  across sectors. No trained polar model ships yet, so the tied weights are
+  across sectors. No trained polar model ships yet (``vbrl bench
+  --polar-model`` takes one, grid and all), so the stand-in's tied weights are
   the default model's modality importances times its voxel importances
   averaged over each (layer, ring) annulus, with the least important third of
   the annuli switched off as the sparsity norms would. The winter
@@ -84,25 +85,33 @@ def cartesian_set(scans: list[tuple[np.ndarray, np.ndarray, int]], prune: float 
 
 
 def polar_set(scans: list[tuple[np.ndarray, np.ndarray, int]], sectors: int = 24,
-              off_fraction: float = 1 / 3, seed: int = 0) -> DescriptorSet:
-    """Polar-grid compact descriptors; the winter session is rotated by random yaws first."""
+              off_fraction: float = 1 / 3, seed: int = 0, model: Any = None) -> DescriptorSet:
+    """Polar-grid compact descriptors; the winter session is rotated by random yaws first.
+
+    ``model``: a trained polar :class:`~vbrl_ros.model.VBRLModel` whose grid,
+    standardisation and weights are used instead of the stand-in described in
+    the module docstring.
+    """
     from vbrl_ros.config import VBRLConfig, VoxelGridConfig
     from vbrl_ros.default_model import load_default_model
     from vbrl_ros.features import Featurizer
 
+    if model is not None:
+        if model.config.grid.kind != "polar":
+            raise ValueError(f"the polar benchmark needs a polar model, got a "
+                             f"{model.config.grid.kind} one")
+        raw, poses = _rotated_descriptors(model.featurizer(), scans, seed)
+        scorer = model.scorer()
+        x = model.standardize(np.asarray(raw, np.float64))
+        return DescriptorSet("polar", scorer.compact(x).astype(np.float32), scorer,
+                             np.array([s for _, _, s in scans]), poses)
     model = load_default_model()
     grid = model.config.grid
     polar = VoxelGridConfig(kind="polar", sectors=sectors, z_edges=grid.z_edges,
                             max_range=grid.extent_xy)
     featurizer = Featurizer(VBRLConfig(grid=polar, features=model.config.features))
     layout = featurizer.layout
-    rng = np.random.default_rng([seed, 0x9071])
-    raw, poses = [], []
-    for points, pose, session in scans:
-        yaw = rng.uniform(-math.pi, math.pi) if session == 1 else 0.0
-        rotation = _rz(yaw)
-        raw.append(featurizer.describe(points @ rotation[:3, :3].T.astype(np.float32)))
-        poses.append(pose @ np.linalg.inv(rotation))  # the rotated scan's T_world_lidar
+    raw, poses = _rotated_descriptors(featurizer, scans, seed)
     x = np.asarray(raw, np.float64)
     # standardise per column, statistics pooled over scans and sectors (tied)
     columns = x[:, layout.sector_rows]  # (n, S, R)
@@ -114,7 +123,20 @@ def polar_set(scans: list[tuple[np.ndarray, np.ndarray, int]], sectors: int = 24
     weights = row_weights(model.w_modality, w_voxel / w_voxel.sum(), layout.weight_layout)
     scorer = WeightedL1Scorer(weights, sector_rows=layout.sector_rows)
     return DescriptorSet("polar", scorer.compact(x).astype(np.float32), scorer,
-                         np.array([s for _, _, s in scans]), np.array(poses))
+                         np.array([s for _, _, s in scans]), poses)
+
+
+def _rotated_descriptors(featurizer: Any, scans: list[tuple[np.ndarray, np.ndarray, int]],
+                         seed: int) -> tuple[list[np.ndarray], np.ndarray]:
+    """Raw descriptors with every winter scan turned by a seeded random yaw, and their poses."""
+    rng = np.random.default_rng([seed, 0x9071])
+    raw, poses = [], []
+    for points, pose, session in scans:
+        yaw = rng.uniform(-math.pi, math.pi) if session == 1 else 0.0
+        rotation = _rz(yaw)
+        raw.append(featurizer.describe(points @ rotation[:3, :3].T.astype(np.float32)))
+        poses.append(pose @ np.linalg.inv(rotation))  # the rotated scan's T_world_lidar
+    return raw, np.array(poses)
 
 
 def _ring_importances(w_voxel: np.ndarray, grid: Any, rings: int) -> np.ndarray:

@@ -55,11 +55,18 @@ _CROSS_SEASON_QUERIES = 40
 _CROSS_SEASON_WORK = 4e9
 
 
-def measure(sizes: tuple[int, ...] = DEFAULT_SIZES, repeats: int = 50, seed: int = 0) -> dict[str, Any]:
-    """All figures of the index section as a JSON-ready dict."""
+def measure(sizes: tuple[int, ...] = DEFAULT_SIZES, repeats: int = 50, seed: int = 0,
+            polar_model: Any = None, polar_model_name: str | None = None) -> dict[str, Any]:
+    """All figures of the index section as a JSON-ready dict.
+
+    ``polar_model``: a trained polar model for the polar rows (default: the
+    stand-in of :func:`bd.polar_set`); ``polar_model_name`` labels it.
+    """
     scans = bd.simulated_scans(spacing_m=3.0)
-    sets = {"cartesian": bd.cartesian_set(scans), "polar": bd.polar_set(scans, seed=seed)}
+    sets = {"cartesian": bd.cartesian_set(scans),
+            "polar": bd.polar_set(scans, seed=seed, model=polar_model)}
     results: dict[str, Any] = {"sizes": list(sizes), "repeats": repeats, "drive_scans": len(scans),
+                               "polar_model": polar_model_name or "stand-in (no trained model)",
                                "shapes": {}}
     for name, data in sets.items():
         params = KeyframeIndex(data.weights, sectors=data.sectors).options()
@@ -278,6 +285,7 @@ def format_table(results: dict[str, Any]) -> str:
                     str(shape["memory"][storage]["total"]),
                 ))
     lines = _render(header, rows)
+    lines.append(f"polar weights: {results.get('polar_model', 'stand-in (no trained model)')}")
     for name, shape in results["shapes"].items():
         m, d = shape["memory"]["float32"], shape["drive"]
         yaw = (f", yaw error median {d['yaw_error_deg_median']:.1f} deg"
