@@ -22,15 +22,13 @@ def default_parameters(width: int, sectors: int) -> dict[str, int]:
     (S = 24, d ~ 15.7k: key scan ~3.5 ms, yaw keys ~2 us per candidate,
     exact ~3.5 us per re-ranked shift, ~0.7 ms to complete 8 rows) shapes,
     spending the rest of the budget on candidates, which is what recall on
-    cross-season queries needs most. The search is memory-bound at 100k (each
-    re-ranked polar row is 60-90 kB), so the polar re-rank keeps 64 rows: on
-    the town-1 and mid360 evaluations 64 gave the same top-1s as 128.
+    cross-season queries needs most.
     """
     polar = sectors > 1
     return {
         "key_dim": min(MAX_KEY_DIM, width),
         "candidates": 1024 if polar else 512,
-        "rerank": 64 if polar else 512,
+        "rerank": 128 if polar else 512,
         "yaw_dim": min(width, 32) if polar else 0,
         "yaw_shifts": min(sectors, 2),
         "complete_rows": 8 if polar else 0,
