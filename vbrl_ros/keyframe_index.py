@@ -8,7 +8,7 @@ tied across sectors. The distance is (**lower = more similar**)
 
 and the best ``k`` gives the yaw (see :class:`SearchResult`). A linear scan
 costs N * S * d per query (seconds at 100k polar keyframes). Next to every
-descriptor the index keeps two small keys and searches in three stages:
+descriptor the index keeps two small keys and searches in (up to) four stages:
 
 1. **Candidates** from a rotation-invariant key: each column summed over the
    sectors, ``c_r = sum_s x[s, r]``, the columns split at random (seeded) into
@@ -302,7 +302,7 @@ class KeyframeIndex:
         """The ``top_k`` nearest allowed keyframes with their yaws (see :class:`SearchResult`).
 
         ``exact=True`` is brute force over every keyframe and shift; otherwise the
-        three-stage search, exact for the keyframes it returns.
+        staged search, exact for the keyframes it returns.
         """
         q = self.check(query)
         n = self._size
