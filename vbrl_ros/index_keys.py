@@ -114,6 +114,18 @@ def raw_keys(x: np.ndarray, sectors: int, group: np.ndarray, signed_w: np.ndarra
             out_key[i, group[r]] += signed_w[r] * column[r]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _above(scores: np.ndarray, rows: np.ndarray, a: int, b: int) -> bool:
+    """Entry a belongs above entry b in the max-heap: larger score, or equal score and later row."""
+    return scores[a] > scores[b] or (scores[a] == scores[b] and rows[a] > rows[b])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _swap(scores: np.ndarray, rows: np.ndarray, a: int, b: int) -> None:
+    scores[a], scores[b] = scores[b], scores[a]
+    rows[a], rows[b] = rows[b], rows[a]
+
+
 @njit(cache=True, nogil=True)
 def _sift_down(scores: np.ndarray, rows: np.ndarray, size: int) -> None:
     """Restore the max-heap on (score, row) after the root was replaced."""
@@ -122,29 +134,21 @@ def _sift_down(scores: np.ndarray, rows: np.ndarray, size: int) -> None:
         left = 2 * i + 1
         if left >= size:
             return
-        big = left
-        right = left + 1
-        if right < size and (scores[right] > scores[left]
-                             or (scores[right] == scores[left] and rows[right] > rows[left])):
-            big = right
-        if scores[big] > scores[i] or (scores[big] == scores[i] and rows[big] > rows[i]):
-            scores[i], scores[big] = scores[big], scores[i]
-            rows[i], rows[big] = rows[big], rows[i]
-            i = big
-        else:
+        big = left + 1 if left + 1 < size and _above(scores, rows, left + 1, left) else left
+        if not _above(scores, rows, big, i):
             return
+        _swap(scores, rows, i, big)
+        i = big
 
 
 @njit(cache=True, nogil=True)
 def _sift_up(scores: np.ndarray, rows: np.ndarray, i: int) -> None:
     while i > 0:
         parent = (i - 1) // 2
-        if scores[i] > scores[parent] or (scores[i] == scores[parent] and rows[i] > rows[parent]):
-            scores[i], scores[parent] = scores[parent], scores[i]
-            rows[i], rows[parent] = rows[parent], rows[i]
-            i = parent
-        else:
+        if not _above(scores, rows, i, parent):
             return
+        _swap(scores, rows, i, parent)
+        i = parent
 
 
 @njit(cache=True, nogil=True)
