@@ -10,6 +10,7 @@ import pytest
 from vbrl_ros import bench_descriptors as bd
 from vbrl_ros.keyframe_index import INDEX_FORMAT_VERSION, KeyframeIndex
 from vbrl_ros.scoring import WeightedL1Scorer
+from vbrl_ros.weighted_l1_kernels import min_over_shifts_f32
 
 
 def _clustered(n: int, d: int, clusters: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -82,6 +83,12 @@ def test_polar_distances_match_the_scorer_and_are_the_same_in_both_searches():
     exact = index.search_with_yaw(q, top_k=400, exact=True)
     np.testing.assert_array_equal(found.indices, exact.indices)
     np.testing.assert_array_equal(found.distances, exact.distances)
+    # and so does the plain scan the benchmark times
+    rows = np.arange(len(x), dtype=np.int64)
+    scan_d, scan_k = np.empty(len(x), np.float32), np.empty(len(x), np.int64)
+    min_over_shifts_f32(index.descriptors(), rows, q, index.column_weights, 12, scan_d, scan_k)
+    np.testing.assert_array_equal(scan_d[exact.indices], exact.distances)
+    np.testing.assert_array_equal(scan_k[exact.indices], exact.shifts)
 
 
 def test_keys_bound_the_distance_from_below_at_every_shift():

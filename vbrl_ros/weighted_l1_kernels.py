@@ -62,17 +62,6 @@ def _sector_l1(q: np.ndarray, q_start: int, t: np.ndarray, t_start: int,
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _all_shifts(t: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int,
-                out: np.ndarray) -> None:
-    """out[k] = D_k(q, t) for every shift k (template row t, query q, both (S*R,))."""
-    width = len(w)
-    out[:] = 0.0
-    for s in range(sectors):
-        for k in range(sectors):
-            out[k] += _sector_l1(q, ((s + k) % sectors) * width, t, s * width, w)
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _one_shift(t: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int, k: int) -> np.float32:
     width = len(w)
     total = np.float32(0.0)
@@ -96,8 +85,7 @@ def min_over_shifts_f32(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: n
     """Brute force: min_k D_k and its k for each stored row ``store[rows[i]]`` (float32 store)."""
     per_shift = np.empty(sectors, np.float32)
     for i in range(len(rows)):
-        _all_shifts(store[rows[i]], q, w, sectors, per_shift)
-        best = _argmin_first(per_shift)
+        best = _nearest_row(store[rows[i]], q, w, sectors, np.inf, per_shift)  # never abandons
         out_distance[i] = per_shift[best]
         out_shift[i] = best
 
