@@ -146,13 +146,12 @@ def run(args: argparse.Namespace) -> int:
     if args.repeats < 1:
         raise ValueError("--repeats must be >= 1")
     polar_model = None
-    if args.polar_model is not None:
+    if args.polar_model is not None:  # checked before the long first section
+        from vbrl_ros.bench_descriptors import require_polar
         from vbrl_ros.model import load_model
 
         polar_model = load_model(args.polar_model)
-        if polar_model.config.grid.kind != "polar":
-            raise ValueError(f"{args.polar_model}: --polar-model needs a polar model "
-                             f"(vbrl train --grid polar), this one is {polar_model.config.grid.kind}")
+        require_polar(polar_model, f"{args.polar_model}: --polar-model")
     results = measure(repeats=args.repeats)
     print(format_table(results), flush=True)
     if args.sizes:

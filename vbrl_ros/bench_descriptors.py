@@ -97,9 +97,7 @@ def polar_set(scans: list[tuple[np.ndarray, np.ndarray, int]], sectors: int = 24
     from vbrl_ros.features import Featurizer
 
     if model is not None:
-        if model.config.grid.kind != "polar":
-            raise ValueError(f"the polar benchmark needs a polar model, got a "
-                             f"{model.config.grid.kind} one")
+        require_polar(model)
         raw, poses = _rotated_descriptors(model.featurizer(), scans, seed)
         scorer = model.scorer()
         x = model.standardize(np.asarray(raw, np.float64))
@@ -124,6 +122,13 @@ def polar_set(scans: list[tuple[np.ndarray, np.ndarray, int]], sectors: int = 24
     scorer = WeightedL1Scorer(weights, sector_rows=layout.sector_rows)
     return DescriptorSet("polar", scorer.compact(x).astype(np.float32), scorer,
                          np.array([s for _, _, s in scans]), poses)
+
+
+def require_polar(model: Any, name: str = "the polar benchmark") -> None:
+    """``ValueError`` unless ``model`` was trained on a polar grid (``vbrl train --grid polar``)."""
+    if model.config.grid.kind != "polar":
+        raise ValueError(f"{name} needs a polar model (vbrl train --grid polar), "
+                         f"this one is {model.config.grid.kind}")
 
 
 def _rotated_descriptors(featurizer: Any, scans: list[tuple[np.ndarray, np.ndarray, int]],
