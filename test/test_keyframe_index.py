@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from vbrl_ros import bench_descriptors as bd
+from vbrl_ros.index_bench import winter_comparison
 from vbrl_ros.keyframe_index import INDEX_FORMAT_VERSION, KeyframeIndex
 from vbrl_ros.scoring import WeightedL1Scorer
 from vbrl_ros.weighted_l1_kernels import min_over_shifts_f32
@@ -203,17 +204,9 @@ def _cross_season(data: bd.DescriptorSet, n: int, storage: str = "float32",
     index = KeyframeIndex(data.weights, sectors=data.sectors, storage=storage)
     for chunk in bd.replicate(data.descriptors[summer], n):
         index.add_batch(chunk)
-    positions = data.poses[:, :2, 3]
-    database = positions[summer][np.arange(n) % len(summer)]
-    agree = right = right_exact = 0
     picks = winter if queries is None else winter[:: max(1, len(winter) // queries)]
-    for q in picks:
-        got = index.search(data.descriptors[q], 1)[0][0]
-        ref = index.exact_search(data.descriptors[q], 1)[0][0]
-        agree += got == ref
-        right += np.linalg.norm(database[got] - positions[q]) < 3.0
-        right_exact += np.linalg.norm(database[ref] - positions[q]) < 3.0
-    return agree / len(picks), right / len(picks), right_exact / len(picks)
+    found = winter_comparison(data, index, picks)
+    return found["top1_agreement"], found["recall_at_1_index"], found["recall_at_1_exact"]
 
 
 @pytest.mark.parametrize("storage", ["float32", "float16"])

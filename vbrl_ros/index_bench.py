@@ -205,19 +205,24 @@ def _time_and_recall(data: bd.DescriptorSet, index: KeyframeIndex, inserts: np.n
 
 
 def _cross_season(data: bd.DescriptorSet, index: KeyframeIndex) -> dict[str, Any] | None:
-    """Real winter queries against the grown summer database: index vs brute force.
-
-    Keyframe i of the database is mostly summer scan i % B and gets its
-    position. ``None`` where brute force is too slow (``_CROSS_SEASON_WORK``).
-    """
+    """:func:`winter_comparison` on the bench's fixed winter queries; ``None`` where brute
+    force is too slow (``_CROSS_SEASON_WORK``)."""
     if len(index) * index.dimension * index.sectors > _CROSS_SEASON_WORK:
         return None
     count = _CROSS_SEASON_QUERIES
-    summer, winter = np.flatnonzero(data.session == 0), np.flatnonzero(data.session == 1)
+    winter = np.flatnonzero(data.session == 1)
+    return winter_comparison(data, index, winter[:: max(1, len(winter) // count)][:count])
+
+
+def winter_comparison(data: bd.DescriptorSet, index: KeyframeIndex,
+                      picks: np.ndarray) -> dict[str, Any]:
+    """Winter scans ``picks`` queried against ``index``, grown from the summer drive by
+    :func:`bd.replicate` (keyframe i is mostly summer scan i % B and gets its position):
+    top-1 agreement and Recall@1 (within 3 m) of the index and of brute force."""
+    summer = np.flatnonzero(data.session == 0)
     positions = data.poses[:, :2, 3]
     where = positions[summer][np.arange(len(index)) % len(summer)]
     agree = right = right_exact = 0
-    picks = winter[:: max(1, len(winter) // count)][:count]
     for q in picks:
         got = index.search(data.descriptors[q], 1)[0][0]
         ref = index.exact_search(data.descriptors[q], 1)[0][0]
