@@ -38,7 +38,7 @@ import numpy as np
 
 from vbrl_ros.io.atomic import atomic_write
 from vbrl_ros.io.npz import one_line, read_npz
-from vbrl_ros.keyframe_index import KeyframeIndex
+from vbrl_ros.keyframe_index import KeyframeIndex, grown
 from vbrl_ros.scoring import WeightedL1Scorer
 
 DATABASE_FORMAT = "vbrl_ros.keyframes"
@@ -72,17 +72,6 @@ class Candidate:
     stamp: float
     session: str
     yaw: float = 0.0
-
-
-def _grown(array: np.ndarray, needed: int) -> np.ndarray:
-    """``array`` with capacity >= needed along axis 0, doubling so growth is amortised O(1)."""
-    capacity = len(array)
-    if needed <= capacity:
-        return array
-    new_capacity = max(needed, 2 * capacity, _INITIAL_CAPACITY)
-    out = np.empty((new_capacity, *array.shape[1:]), dtype=array.dtype)
-    out[:capacity] = array
-    return out
 
 
 class KeyframeDatabase:
@@ -221,12 +210,12 @@ class KeyframeDatabase:
         self.index.add(descriptor_compact)  # validates the descriptor before storing anything
 
         n = self._size
-        self._stamps = _grown(self._stamps, n + 1)
-        self._session_index = _grown(self._session_index, n + 1)
-        self._keyframe_ids = _grown(self._keyframe_ids, n + 1)
-        self._poses = _grown(self._poses, n + 1)
-        self._cloud_offsets = _grown(self._cloud_offsets, n + 2)
-        self._cloud_points = _grown(self._cloud_points, self._n_points + len(points))
+        self._stamps = grown(self._stamps, n + 1)
+        self._session_index = grown(self._session_index, n + 1)
+        self._keyframe_ids = grown(self._keyframe_ids, n + 1)
+        self._poses = grown(self._poses, n + 1)
+        self._cloud_offsets = grown(self._cloud_offsets, n + 2)
+        self._cloud_points = grown(self._cloud_points, self._n_points + len(points))
 
         self._stamps[n] = stamp
         self._session_index[n] = self._session_id(str(session))

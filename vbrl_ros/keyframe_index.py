@@ -93,7 +93,8 @@ class SearchResult:
     yaws: np.ndarray  # float64
 
 
-def _grown(array: np.ndarray, needed: int) -> np.ndarray:
+def grown(array: np.ndarray, needed: int) -> np.ndarray:
+    """``array`` with capacity >= needed along axis 0, doubling so growth is amortised O(1)."""
     capacity = len(array)
     if needed <= capacity:
         return array
@@ -203,9 +204,9 @@ class KeyframeIndex:
         self._reserve(int(capacity))
 
     def _reserve(self, needed: int) -> None:
-        self._descriptors = _grown(self._descriptors, needed)
-        self._yaw_keys = _grown(self._yaw_keys, needed)
-        self._key_blocks = _grown(self._key_blocks, -(-needed // kk.BLOCK))
+        self._descriptors = grown(self._descriptors, needed)
+        self._yaw_keys = grown(self._yaw_keys, needed)
+        self._key_blocks = grown(self._key_blocks, -(-needed // kk.BLOCK))
 
     # -- reading --------------------------------------------------------------
 
