@@ -11,7 +11,7 @@ from vbrl_ros import bench_descriptors as bd
 from vbrl_ros.index_bench import winter_comparison
 from vbrl_ros.keyframe_index import INDEX_FORMAT_VERSION, KeyframeIndex
 from vbrl_ros.scoring import WeightedL1Scorer
-from vbrl_ros.weighted_l1_kernels import min_over_shifts_f32
+from vbrl_ros.weighted_l1_kernels import min_over_shifts
 
 
 def _clustered(n: int, d: int, clusters: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -87,7 +87,7 @@ def test_polar_distances_match_the_scorer_and_are_the_same_in_both_searches():
     # and so does the plain scan the benchmark times
     rows = np.arange(len(x), dtype=np.int64)
     scan_d, scan_k = np.empty(len(x), np.float32), np.empty(len(x), np.int64)
-    min_over_shifts_f32(index.descriptors(), rows, q, index.column_weights, 12, scan_d, scan_k)
+    min_over_shifts(index.descriptors(), rows, q, index.column_weights, 12, scan_d, scan_k)
     np.testing.assert_array_equal(scan_d[exact.indices], exact.distances)
     np.testing.assert_array_equal(scan_k[exact.indices], exact.shifts)
 

@@ -188,9 +188,7 @@ def _time_and_recall(data: bd.DescriptorSet, index: KeyframeIndex, inserts: np.n
         t2 = time.perf_counter()
         both.append(t2 - t0), query_t.append(t1 - t0), insert_t.append(t2 - t1)
     # exact search abandons most keyframes after one sector here: ~n * d per query
-    # (float16 also widens every row, about as much again)
-    budget = _EXACT_BUDGET / (1 if index.storage == "float32" else 2)
-    n_recall = int(min(len(queries), max(5, budget // (len(index) * index.dimension))))
+    n_recall = int(min(len(queries), max(5, _EXACT_BUDGET // (len(index) * index.dimension))))
     agree = yaw_ok = 0
     for target, q, roll in queries[:n_recall]:
         got = index.search_with_yaw(q, 1)
@@ -235,7 +233,7 @@ def winter_comparison(data: bd.DescriptorSet, index: KeyframeIndex,
 
 def _brute_force(index: KeyframeIndex, rng: np.random.Generator) -> dict[str, Any]:
     """The plain linear scan over every keyframe and shift (what the index replaces)."""
-    from vbrl_ros.weighted_l1_kernels import min_over_shifts_f32
+    from vbrl_ros.weighted_l1_kernels import min_over_shifts
 
     n = len(index)
     rows = np.arange(min(n, _BRUTE_FORCE_ROWS), dtype=np.int64)
@@ -244,13 +242,13 @@ def _brute_force(index: KeyframeIndex, rng: np.random.Generator) -> dict[str, An
     store = index.descriptors()
     # compile outside the timing: on a fresh install the first call is JIT
     # compilation (seconds), which once made brute force look 20x slower
-    min_over_shifts_f32(store, rows[:1], index.descriptor(0), index.column_weights, index.sectors,
-                        distances, shifts)
+    min_over_shifts(store, rows[:1], index.descriptor(0), index.column_weights, index.sectors,
+                    distances, shifts)
     times = []
     for _ in range(3):
         q = index.descriptor(int(rng.integers(0, n)))
         t0 = time.perf_counter()
-        min_over_shifts_f32(store, rows, q, index.column_weights, index.sectors, distances, shifts)
+        min_over_shifts(store, rows, q, index.column_weights, index.sectors, distances, shifts)
         np.argpartition(distances, min(5, len(rows) - 1))
         times.append(time.perf_counter() - t0)
     return {"brute_force_query_ms": 1e3 * float(np.median(times)) * n / len(rows),

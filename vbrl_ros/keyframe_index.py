@@ -360,16 +360,15 @@ class KeyframeIndex:
 
     def _nearest(self, q: np.ndarray, rows: np.ndarray, top_k: int, distances: np.ndarray,
                  shifts: np.ndarray) -> None:
-        kernel = wk.nearest_f32 if self.storage == "float32" else wk.nearest_f16
-        kernel(self._store(), rows, q, self.column_weights, self.sectors, top_k, distances, shifts)
+        wk.nearest(self._store(), rows, q, self.column_weights, self.sectors, top_k, distances,
+                   shifts)
 
     def _store(self) -> np.ndarray:
         return self._descriptors if self.storage == "float32" else self._descriptors.view(np.uint16)
 
     def _at_shifts(self, q: np.ndarray, rows: np.ndarray, shifts: np.ndarray) -> np.ndarray:
         out = np.empty(shifts.shape, np.float32)
-        kernel = wk.at_shifts_f32 if self.storage == "float32" else wk.at_shifts_f16
-        kernel(self._store(), rows, shifts, q, self.column_weights, self.sectors, out)
+        wk.at_shifts(self._store(), rows, shifts, q, self.column_weights, self.sectors, out)
         return out
 
     def _result(self, q: np.ndarray, rows: np.ndarray, distances: np.ndarray,

@@ -23,7 +23,7 @@ from typing import Protocol
 import numpy as np
 
 from vbrl_ros.sector_shift import refined_yaw, yaw_of_shift
-from vbrl_ros.weighted_l1_kernels import at_shifts_f32, min_over_shifts_f32
+from vbrl_ros.weighted_l1_kernels import at_shifts, min_over_shifts
 
 
 class RowLayout(Protocol):
@@ -149,12 +149,12 @@ class WeightedL1Scorer:
         rows = np.arange(len(t), dtype=np.int64)
         distances = np.empty(len(t), np.float32)
         shifts = np.empty(len(t), np.int64)
-        min_over_shifts_f32(t, rows, q, self.column_weights, self.sectors, distances, shifts)
+        min_over_shifts(t, rows, q, self.column_weights, self.sectors, distances, shifts)
         if not refine or self.sectors < 3:
             return distances, yaw_of_shift(shifts, self.sectors)
         around = np.stack([(shifts - 1) % self.sectors, (shifts + 1) % self.sectors], axis=1)
         side = np.empty(around.shape, np.float32)
-        at_shifts_f32(t, rows, around, q, self.column_weights, self.sectors, side)
+        at_shifts(t, rows, around, q, self.column_weights, self.sectors, side)
         return distances, refined_yaw(shifts, side[:, 0], distances, side[:, 1], self.sectors)
 
     def distances(self, query: np.ndarray, templates: np.ndarray) -> np.ndarray:

@@ -13,40 +13,38 @@ sector, each a vectorised sum over r), so the brute-force scan and the index's
 re-rank at chosen shifts return bitwise-identical float32 values — equality
 between the two is meaningful, not "up to rounding".
 
-float16 storage: numba has no float16 arithmetic, so such stores are passed as
-their ``uint16`` bit patterns and widened row by row into a scratch buffer
-(exact for every finite half, subnormals included). All kernels are
+float16 storage: numba has no float16 type, so such stores are passed as
+their ``uint16`` bit patterns and :func:`as_float32` widens each entry inside
+the sums (one ``fpext half`` in LLVM: exact, and vectorised to the CPU's
+half-to-float conversion where it has one). Every kernel compiles once per
+store dtype, so float32 and float16 stores run the same code. All kernels are
 single-threaded and release the GIL.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
 
-_TWO_POW_112 = np.float32(2.0**112)  # rebias of a half exponent (15) to a float exponent (127)
 
-
-@njit(cache=True, nogil=True, inline="always")
-def _widen_half(src: np.ndarray, out: np.ndarray) -> None:
-    """out[j] = float32(src[j]) for a uint16 row holding finite float16 bit patterns.
-
-    Shifting exponent + mantissa into float32 position gives the half's value
-    times 2**-112 (also for subnormals, which become float32 subnormals); one
-    multiply restores it exactly, then the sign is applied.
-    """
-    bits = out.view(np.uint32)
-    for j in range(len(src)):
-        bits[j] = np.uint32(src[j] & 0x7FFF) << 13
-    for j in range(len(src)):
-        v = out[j] * _TWO_POW_112
-        out[j] = -v if src[j] & 0x8000 else v
+@intrinsic
+def as_float32(typingctx, value):
+    """float32 of a float32 (itself) or of a uint16 holding float16 bits (exact widening)."""
+    if value == types.float32:
+        return types.float32(value), lambda context, builder, signature, args: args[0]
+    if value == types.uint16:
+        def widen(context, builder, signature, args):
+            return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
+        return types.float32(value), widen
+    return None
 
 
 @njit(cache=True, nogil=True, fastmath=True)
 def _sector_l1(q: np.ndarray, q_start: int, t: np.ndarray, t_start: int,
                w: np.ndarray) -> np.float32:
-    """sum_r w[r] |q[q_start + r] - t[t_start + r]| (float32).
+    """sum_r w[r] |q[q_start + r] - t[t_start + r]| (float32; t float32 or float16 bits).
 
     Deliberately not inlined: a separate fastmath function is vectorised the
     same way whoever calls it (inlined into a non-fastmath caller it is not
@@ -57,7 +55,7 @@ def _sector_l1(q: np.ndarray, q_start: int, t: np.ndarray, t_start: int,
     b = t[t_start : t_start + n]
     total = np.float32(0.0)
     for r in range(n):
-        total += w[r] * abs(a[r] - b[r])
+        total += w[r] * abs(a[r] - as_float32(b[r]))
     return total
 
 
@@ -80,9 +78,12 @@ def _argmin_first(values: np.ndarray) -> int:
 
 
 @njit(cache=True, nogil=True)
-def min_over_shifts_f32(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.ndarray,
+def min_over_shifts(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.ndarray,
                         sectors: int, out_distance: np.ndarray, out_shift: np.ndarray) -> None:
-    """Brute force: min_k D_k and its k for each stored row ``store[rows[i]]`` (float32 store)."""
+    """Brute force: min_k D_k and its k for each stored row ``store[rows[i]]``.
+
+    ``store``: (n, S*R) float32, or the uint16 view of a float16 store (as every kernel here).
+    """
     per_shift = np.empty(sectors, np.float32)
     for i in range(len(rows)):
         best = _nearest_row(store[rows[i]], q, w, sectors, np.inf, per_shift)  # never abandons
@@ -118,9 +119,9 @@ def _nearest_row(t: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int, thre
 
 
 @njit(cache=True, nogil=True)
-def nearest_f32(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int,
-                top_k: int, out_distance: np.ndarray, out_shift: np.ndarray) -> None:
-    """:func:`min_over_shifts_f32` that may skip rows which cannot be among the ``top_k``.
+def nearest(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int,
+            top_k: int, out_distance: np.ndarray, out_shift: np.ndarray) -> None:
+    """:func:`min_over_shifts` that may skip rows which cannot be among the ``top_k``.
 
     A row is abandoned (distance +inf, shift -1) once the partial sums of all
     its shifts exceed the k-th best distance found so far: partial sums only
@@ -140,41 +141,11 @@ def nearest_f32(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.ndarra
 
 
 @njit(cache=True, nogil=True)
-def nearest_f16(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int,
-                top_k: int, out_distance: np.ndarray, out_shift: np.ndarray) -> None:
-    """:func:`nearest_f32` for a float16 store passed as its uint16 view."""
-    per_shift = np.empty(sectors, np.float32)
-    best = np.empty(top_k, np.float32)
-    row = np.empty(store.shape[1], np.float32)
-    count = 0
-    for i in range(len(rows)):
-        threshold = best[top_k - 1] if count == top_k else np.inf
-        _widen_half(store[rows[i]], row)
-        k = _nearest_row(row, q, w, sectors, threshold, per_shift)
-        out_shift[i] = k
-        out_distance[i] = per_shift[k] if k >= 0 else np.inf
-        if k >= 0:
-            count = _keep_best(best, count, per_shift[k])
-
-
-@njit(cache=True, nogil=True)
-def at_shifts_f32(store: np.ndarray, rows: np.ndarray, shifts: np.ndarray, q: np.ndarray,
-                  w: np.ndarray, sectors: int, out: np.ndarray) -> None:
+def at_shifts(store: np.ndarray, rows: np.ndarray, shifts: np.ndarray, q: np.ndarray,
+              w: np.ndarray, sectors: int, out: np.ndarray) -> None:
     """out[i, j] = D_{shifts[i, j]}(q, store[rows[i]]); a negative shift leaves +inf."""
     for i in range(len(rows)):
         t = store[rows[i]]
         for j in range(shifts.shape[1]):
             k = shifts[i, j]
             out[i, j] = _one_shift(t, q, w, sectors, k) if k >= 0 else np.inf
-
-
-@njit(cache=True, nogil=True)
-def at_shifts_f16(store: np.ndarray, rows: np.ndarray, shifts: np.ndarray, q: np.ndarray,
-                  w: np.ndarray, sectors: int, out: np.ndarray) -> None:
-    """:func:`at_shifts_f32` for a float16 store passed as its uint16 view."""
-    row = np.empty(store.shape[1], np.float32)
-    for i in range(len(rows)):
-        _widen_half(store[rows[i]], row)
-        for j in range(shifts.shape[1]):
-            k = shifts[i, j]
-            out[i, j] = _one_shift(row, q, w, sectors, k) if k >= 0 else np.inf
