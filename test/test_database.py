@@ -178,14 +178,14 @@ def test_invalid_input_is_refused():
 def test_bytes_per_keyframe_is_descriptor_key_and_metadata():
     db, _ = make_db(0)
     active = D - 15
-    key = min(256, active)  # one int8 key entry per group, at most one group per active row
+    key = -(-min(256, active) // 2)  # 4-bit key entries, at most one per active row
     assert db.bytes_per_keyframe() == active * 4 + key + METADATA_BYTES_PER_KEYFRAME
     assert db.bytes_breakdown() == {"descriptor": active * 4, "key": key, "yaw_key": 0,
                                     "metadata": METADATA_BYTES_PER_KEYFRAME}
     full = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), model_id="default")
-    assert full.bytes_per_keyframe() == 7872 * 4 + 256 + METADATA_BYTES_PER_KEYFRAME == 31900
+    assert full.bytes_per_keyframe() == 7872 * 4 + 128 + METADATA_BYTES_PER_KEYFRAME == 31772
     half = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), model_id="default", storage="float16")
-    assert half.bytes_per_keyframe() == 7872 * 2 + 256 + METADATA_BYTES_PER_KEYFRAME
+    assert half.bytes_per_keyframe() == 7872 * 2 + 128 + METADATA_BYTES_PER_KEYFRAME
     assert full.cloud_bytes_per_keyframe() == 0.0
 
 

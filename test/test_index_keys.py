@@ -6,19 +6,32 @@ import pytest
 from vbrl_ros import index_keys as kk
 
 
-def _blocks(keys: np.ndarray) -> np.ndarray:
-    """Row-major uint8 keys (n, key_dim) in the scan's block layout."""
-    n, key_dim = keys.shape
-    padded = np.zeros((-(-n // kk.BLOCK) * kk.BLOCK, key_dim), np.uint8)
-    padded[:n] = keys
-    return np.ascontiguousarray(padded.reshape(-1, kk.BLOCK, key_dim).transpose(0, 2, 1))
+def _blocks(codes: np.ndarray) -> np.ndarray:
+    """Row-major nibble codes (n, key_dim) in the scan's packed block layout."""
+    pairs = kk.packed(codes)
+    n, width = pairs.shape
+    padded = np.zeros((-(-n // kk.BLOCK) * kk.BLOCK, width), np.uint8)
+    padded[:n] = pairs
+    return np.ascontiguousarray(padded.reshape(-1, kk.BLOCK, width).transpose(0, 2, 1))
+
+
+def _query(codes: np.ndarray) -> np.ndarray:
+    return kk.unpacked(kk.packed(codes[None]), 2 * -(-len(codes) // 2))[0]  # padded like keys
+
+
+def test_packing_round_trips_odd_and_even_widths():
+    rng = np.random.default_rng(0)
+    for key_dim in (1, 7, 8, 255):
+        codes = rng.integers(0, 16, (5, key_dim)).astype(np.uint8)
+        assert kk.packed(codes).shape == (5, -(-key_dim // 2))
+        np.testing.assert_array_equal(kk.unpacked(kk.packed(codes), key_dim), codes)
 
 
 @pytest.mark.parametrize("n, key_dim, want, levels", [
-    (1000, 256, 37, 256),  # full range: |a - q| up to 255 per entry
-    (5000, 64, 300, 3),  # few levels: many tied scores, ties go to the lower row
-    (130, 8, 500, 256),  # want > n: everything, in any order
-    (20000, 32, 1, 256),
+    (1000, 1024, 37, 16),  # full range at the longest key: |a - q| up to 15 per entry
+    (5000, 63, 300, 3),  # few levels: many tied scores, ties go to the lower row; odd width
+    (130, 8, 500, 16),  # want > n: everything, in any order
+    (20000, 32, 1, 16),
 ])
 def test_scan_top_is_the_want_smallest_with_lower_rows_on_ties(n, key_dim, want, levels):
     rng = np.random.default_rng(n)
@@ -27,7 +40,7 @@ def test_scan_top_is_the_want_smallest_with_lower_rows_on_ties(n, key_dim, want,
     for allowed in (np.empty(0, np.bool_), rng.random(n) < 0.3):
         rows = np.empty(want, np.int64)
         scores = np.empty(want, np.int32)
-        found = kk.scan_top(_blocks(keys), query, n, allowed, want, rows, scores)
+        found = kk.scan_top(_blocks(keys), _query(query), n, allowed, want, rows, scores)
         reference = np.abs(keys.astype(np.int32) - query).sum(axis=1)
         candidates = np.arange(n) if len(allowed) == 0 else np.flatnonzero(allowed)
         expected = candidates[np.lexsort((candidates, reference[candidates]))][:want]
@@ -38,9 +51,9 @@ def test_scan_top_is_the_want_smallest_with_lower_rows_on_ties(n, key_dim, want,
 
 def test_scan_top_reads_only_the_first_n_keyframes():
     rng = np.random.default_rng(3)
-    keys = rng.integers(0, 256, (300, 16)).astype(np.uint8)
+    keys = rng.integers(0, 16, (300, 16)).astype(np.uint8)
     query = keys[250].copy()  # distance 0, but beyond n
     rows = np.empty(5, np.int64)
     scores = np.empty(5, np.int32)
-    found = kk.scan_top(_blocks(keys), query, 200, np.empty(0, np.bool_), 5, rows, scores)
+    found = kk.scan_top(_blocks(keys), _query(query), 200, np.empty(0, np.bool_), 5, rows, scores)
     assert found == 5 and rows.max() < 200

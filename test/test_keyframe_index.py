@@ -124,7 +124,7 @@ def test_float16_storage_widens_exactly():
         a, b = half.search_with_yaw(q, 3, exact=True), full.search_with_yaw(q, 3, exact=True)
         np.testing.assert_array_equal(a.indices, b.indices)
         np.testing.assert_array_equal(a.distances, b.distances)
-    assert half.bytes_per_keyframe() == 480 * 2 + half.key_dim + 4 * 12 * half.yaw_dim
+    assert half.bytes_per_keyframe() == 480 * 2 + -(-half.key_dim // 2) + 4 * 12 * half.yaw_dim
 
 
 # -- rotation search ---------------------------------------------------------------------
@@ -304,7 +304,13 @@ def test_state_round_trip(tmp_path, storage):
     with pytest.raises(ValueError, match="lacks"):
         KeyframeIndex.from_state({"index_format": np.array("vbrl_ros.keyframe_index")})
     with pytest.raises(ValueError, match="version"):
-        KeyframeIndex.from_state({**state, "index_format_version": np.array(INDEX_FORMAT_VERSION - 1)})
+        KeyframeIndex.from_state({**state, "index_format_version": np.array(1)})
+    # version 2 stored 8-bit keys (another scale): they are recomputed, results unchanged
+    old = {**state, "index_format_version": np.array(2), "index_key_clip_sigma": np.array(4.0),
+           "index_keys": (state["index_keys"].astype(np.int16) * 17).astype(np.int8)}
+    rekeyed = KeyframeIndex.from_state(old)
+    np.testing.assert_array_equal(rekeyed.stored_keys(), index.stored_keys())
+    assert rekeyed.options() == index.options()
     bad = state["index_yaw_keys"].copy()
     bad[0, 0, 0] += 1.0
     with pytest.raises(ValueError, match="do not match"):
@@ -322,7 +328,7 @@ def test_rejects_bad_input():
     index.add(np.zeros(50))
     with pytest.raises(ValueError, match="boolean mask"):
         index.search(np.zeros(50), 1, np.ones(2, bool))
-    assert index.bytes_per_keyframe() == 50 * 4 + 8
+    assert index.bytes_per_keyframe() == 50 * 4 + 8 // 2  # two 4-bit key entries per byte
     with pytest.raises(ValueError, match="tied"):
         KeyframeIndex(np.arange(1, 13, dtype=np.float32), sectors=3)
     with pytest.raises(ValueError, match="key_dim"):

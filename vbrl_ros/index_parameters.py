@@ -12,21 +12,24 @@ import numpy as np
 from vbrl_ros.index_keys import MAX_KEY_DIM
 
 _MAX_INT = 2**31 - 1
+# 256 4-bit entries (128 bytes): ranks the brute-force match as the 8-bit keys
+# of the same length did; 512 ranks it better but doubles the ~2 ms key scan
+DEFAULT_KEY_DIM = 256
 
 
 def default_parameters(width: int, sectors: int) -> dict[str, int]:
     """Defaults for R = ``width`` active columns and S sectors, tuned with ``vbrl bench``.
 
     Query + insert <= 10 ms at 100k keyframes on one core for the Cartesian
-    (S = 1, d ~ 7.9k: key scan ~3.5 ms + ~6 us per candidate) and polar
-    (S = 24, d ~ 15.7k: key scan ~3.5 ms, yaw keys ~2 us per candidate,
-    exact ~3.5 us per re-ranked shift, ~0.7 ms to complete 8 rows) shapes,
+    (S = 1, d ~ 7.9k: key scan ~2-3 ms + ~6 us per candidate) and polar
+    (S = 24, d ~ 16-23k: key scan ~2-3 ms, yaw keys ~2.5 us per candidate,
+    exact ~4-8 us per re-ranked shift, ~1-1.5 ms to complete 8 rows) shapes,
     spending the rest of the budget on candidates, which is what recall on
     cross-season queries needs most.
     """
     polar = sectors > 1
     return {
-        "key_dim": min(MAX_KEY_DIM, width),
+        "key_dim": min(DEFAULT_KEY_DIM, width),
         "candidates": 1024 if polar else 512,
         "rerank": 128 if polar else 512,
         "yaw_dim": min(width, 32) if polar else 0,

@@ -14,9 +14,10 @@ descriptor the index keeps two small keys and searches in (up to) four stages:
    sectors, ``c_r = sum_s x[s, r]``, the columns split at random (seeded) into
    ``key_dim`` groups, key_j = sum over the group of ``sign_r w_r c_r`` (random
    signs). By the triangle inequality ``||key(a) - key(b)||_1 <= D_k(a, b)`` for
-   every shift k: a lower bound whatever the heading. int8 with a fixed scale
-   from the weights (no training, O(d) inserts, never a rebuild), scanned at
-   memory speed keeping the ``candidates`` best (:mod:`vbrl_ros.index_keys`).
+   every shift k: a lower bound whatever the heading. 4 bits per entry with a
+   fixed scale from the weights (no training, O(d) inserts, never a rebuild),
+   scanned at memory speed keeping the ``candidates`` best
+   (:mod:`vbrl_ros.index_keys`).
 2. **Yaw keys** (S > 1). Re-ranking C candidates at all S shifts costs
    C * S * d, and summing over sectors discards where things are around the
    sensor, so the invariant key is coarse. A per-sector yaw key — ``yaw_dim``
@@ -108,7 +109,7 @@ class KeyframeIndex:
 
     ``weights``: the scorer's active weights (``WeightedL1Scorer.active_weights``),
     one per compact row, sector-major and equal across sectors. ``sectors``: S.
-    ``key_dim``: candidate-key bytes per keyframe (<= 256). ``candidates``:
+    ``key_dim``: candidate-key entries per keyframe (4 bits each). ``candidates``:
     keyframes kept by the key scan. ``rerank`` (S > 1; S = 1 re-ranks all
     candidates): keyframes kept by the yaw keys and scored exactly at their
     ``yaw_shifts`` best shifts. ``complete_rows`` (S > 1): the nearest so many
@@ -135,7 +136,7 @@ class KeyframeIndex:
         yaw_refine: bool = False,
         seed: int = 0,
         storage: str = "float32",
-        key_clip_sigma: float = 4.0,
+        key_clip_sigma: float = 3.0,
     ) -> None:
         weights = np.asarray(weights, dtype=np.float32)
         if weights.ndim != 1 or len(weights) == 0:
@@ -172,7 +173,7 @@ class KeyframeIndex:
                                   self.seed, self.key_clip_sigma)
         self._size = 0
         self._descriptors = np.empty((_INITIAL_CAPACITY, self.dimension), _STORAGE[storage])
-        self._key_blocks = np.empty((1, self.key_dim, kk.BLOCK), np.uint8)
+        self._key_blocks = np.empty((1, self._key_bytes(), kk.BLOCK), np.uint8)
         self._yaw_keys = np.empty((_INITIAL_CAPACITY, sectors, self.yaw_dim), np.float32)
 
     def options(self) -> dict[str, Any]:
@@ -191,9 +192,12 @@ class KeyframeIndex:
         return self._size
 
     def bytes_breakdown(self) -> dict[str, int]:
-        """Per-keyframe bytes of the descriptor (d x 4 or 2), the int8 key and the yaw key."""
+        """Per-keyframe bytes of the descriptor (d x 4 or 2), the 4-bit key and the yaw key."""
         return {"descriptor": self.dimension * np.dtype(_STORAGE[self.storage]).itemsize,
-                "key": self.key_dim, "yaw_key": 4 * self.sectors * self.yaw_dim}
+                "key": self._key_bytes(), "yaw_key": 4 * self.sectors * self.yaw_dim}
+
+    def _key_bytes(self) -> int:
+        return -(-self.key_dim // 2)  # two 4-bit entries per byte
 
     def bytes_per_keyframe(self) -> int:
         """Descriptor + keys per keyframe; excludes growth slack."""
@@ -234,16 +238,15 @@ class KeyframeIndex:
         return self._codec.raw(x)
 
     def keys(self, descriptors: np.ndarray) -> np.ndarray:
-        """int8 candidate keys (n, key_dim) or (key_dim,) of compact descriptors."""
+        """Candidate keys (n, key_dim) or (key_dim,) of compact descriptors: int8 in [-7, 7]."""
         x = np.asarray(descriptors)
-        quantised = self._codec.quantised(self.raw_keys(x)[0]).astype(np.int16) - 128
-        return quantised.astype(np.int8).reshape(*x.shape[:-1], self.key_dim)
+        codes = self._codec.quantised(self.raw_keys(x)[0])
+        return (codes.astype(np.int8) - 8).reshape(*x.shape[:-1], self.key_dim)
 
     def stored_keys(self) -> np.ndarray:
-        """The stored int8 candidate keys (n, key_dim), row-major."""
-        n = self._size
-        rows = self._key_blocks.transpose(0, 2, 1).reshape(-1, self.key_dim)[:n]
-        return (rows.astype(np.int16) - 128).astype(np.int8)
+        """The stored candidate keys (n, key_dim), int8 in [-7, 7], row-major."""
+        pairs = self._key_blocks.transpose(0, 2, 1).reshape(-1, self._key_bytes())[: self._size]
+        return kk.unpacked(pairs, self.key_dim).astype(np.int8) - 8
 
     # -- writing ----------------------------------------------------------------
 
@@ -280,7 +283,8 @@ class KeyframeIndex:
             if self.storage != "float32":  # keys of the values as stored (bounds stay valid)
                 chunk = stored.astype(np.float32)
             keys, self._yaw_keys[rows[0] : rows[-1] + 1] = self.raw_keys(chunk)
-            self._key_blocks[rows // kk.BLOCK, :, rows % kk.BLOCK] = self._codec.quantised(keys)
+            self._key_blocks[rows // kk.BLOCK, :, rows % kk.BLOCK] = kk.packed(
+                self._codec.quantised(keys))
         self._size = n + m
         return np.arange(n, n + m, dtype=np.int64)
 
@@ -323,7 +327,9 @@ class KeyframeIndex:
         want = min(max(self.candidates, top_k), n)
         rows = np.empty(want, np.int64)
         scores = np.empty(want, np.int32)
-        found = kk.scan_top(self._key_blocks, self._codec.quantised(key[0]), n,
+        query_codes = np.full(2 * self._key_bytes(), 8, np.uint8)  # padded as kk.packed pads
+        query_codes[: self.key_dim] = self._codec.quantised(key[0])
+        found = kk.scan_top(self._key_blocks, query_codes, n,
                             np.empty(0, np.bool_) if mask is None else mask, want, rows, scores)
         rows = np.sort(rows[:found])  # sequential memory access for the gathers
         if self.sectors == 1:
@@ -416,7 +422,7 @@ class KeyframeIndex:
         self._descriptors[:n] = descriptors
         self._yaw_keys[:n] = yaw_keys
         rows = np.arange(n)
-        self._key_blocks[rows // kk.BLOCK, :, rows % kk.BLOCK] = (
-            keys.astype(np.int16) + 128).astype(np.uint8)
+        self._key_blocks[rows // kk.BLOCK, :, rows % kk.BLOCK] = kk.packed(
+            (keys + 8).astype(np.uint8))
         self._size = n
 

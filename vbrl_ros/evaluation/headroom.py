@@ -1,6 +1,6 @@
 """How much room the keyframe index's first stage leaves before it misses matches at scale.
 
-The index keeps a fixed number of candidates from its int8 key scan (512
+The index keeps a fixed number of candidates from its 4-bit key scan (512
 Cartesian / 1024 polar by default, :func:`~vbrl_ros.index_parameters.default_parameters`),
 so the larger the map, the smaller the share of it that reaches the exact
 re-rank: 1 % at 100k polar keyframes, 0.5 % Cartesian. An evaluation set is
