@@ -44,3 +44,29 @@ def test_float16_store_gives_the_float32_sums_of_its_rounded_rows():
                       for t in x])
     np.testing.assert_allclose(results[0][0], exact.min(axis=1), rtol=1e-5)
     np.testing.assert_array_equal(results[0][1], exact.argmin(axis=1))
+
+
+def test_nearest_drops_only_what_cannot_win():
+    rng = np.random.default_rng(1)
+    sectors, width, n = 8, 29, 60
+    store = rng.standard_normal((n, sectors * width)).astype(np.float32)
+    q = rng.standard_normal(sectors * width).astype(np.float32)
+    w = rng.random(width).astype(np.float32)
+    rows = np.arange(n, dtype=np.int64)
+    d_ref, k_ref = np.empty(n, np.float32), np.empty(n, np.int64)
+    wk.min_over_shifts(store, rows, q, w, sectors, d_ref, k_ref)
+    # per-row limits: half the rows at exactly their minimum (kept, bit for bit),
+    # half just below it (nothing can reach the limit: abandoned)
+    limits = np.where(rows % 2 == 0, d_ref, np.nextafter(d_ref, -np.inf)).astype(np.float32)
+    d, k = np.empty(n, np.float32), np.empty(n, np.int64)
+    wk.nearest(store, rows, q, w, sectors, n, limits, d, k)
+    even = rows % 2 == 0
+    np.testing.assert_array_equal(d[even], d_ref[even])
+    np.testing.assert_array_equal(k[even], k_ref[even])
+    assert np.all(k[~even] == -1) and np.all(np.isinf(d[~even]))
+    # top-k pruning alone: the 5 nearest come out exact, the others may be abandoned
+    inf = np.full(n, np.inf, np.float32)
+    wk.nearest(store, rows, q, w, sectors, 5, inf, d, k)
+    top = np.argsort(d_ref, kind="stable")[:5]
+    np.testing.assert_array_equal(d[top], d_ref[top])
+    assert np.all((k == -1) | (d == d_ref))

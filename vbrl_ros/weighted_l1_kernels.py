@@ -60,15 +60,6 @@ def _sector_l1(q: np.ndarray, q_start: int, t: np.ndarray, t_start: int,
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _one_shift(t: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int, k: int) -> np.float32:
-    width = len(w)
-    total = np.float32(0.0)
-    for s in range(sectors):
-        total += _sector_l1(q, ((s + k) % sectors) * width, t, s * width, w)
-    return total
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _argmin_first(values: np.ndarray) -> int:
     best = 0
     for k in range(1, len(values)):
@@ -79,7 +70,7 @@ def _argmin_first(values: np.ndarray) -> int:
 
 @njit(cache=True, nogil=True)
 def min_over_shifts(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.ndarray,
-                        sectors: int, out_distance: np.ndarray, out_shift: np.ndarray) -> None:
+                    sectors: int, out_distance: np.ndarray, out_shift: np.ndarray) -> None:
     """Brute force: min_k D_k and its k for each stored row ``store[rows[i]]``.
 
     ``store``: (n, S*R) float32, or the uint16 view of a float16 store (as every kernel here).
@@ -107,33 +98,49 @@ def _keep_best(best: np.ndarray, count: int, value: np.float32) -> int:
 @njit(cache=True, nogil=True, inline="always")
 def _nearest_row(t: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int, threshold: float,
                  per_shift: np.ndarray) -> int:
-    """Fill per_shift with D_k; -1 once every partial sum exceeds ``threshold`` (abandoned)."""
+    """Fill per_shift with D_k and return the best k; -1 if every D_k > ``threshold``.
+
+    A shift whose partial sum exceeds ``threshold`` is dropped (left +inf):
+    partial sums only grow, so it cannot end at or below it. The row is
+    abandoned once every shift is dropped. Shifts kept have the same sums as
+    every kernel here.
+    """
     width = len(w)
     per_shift[:] = 0.0
     for s in range(sectors):
+        alive = 0
         for k in range(sectors):
-            per_shift[k] += _sector_l1(q, ((s + k) % sectors) * width, t, s * width, w)
-        if s + 1 < sectors and per_shift.min() > threshold:
+            if per_shift[k] <= threshold:
+                per_shift[k] += _sector_l1(q, ((s + k) % sectors) * width, t, s * width, w)
+                alive += 1
+        if alive == 0:
             return -1
-    return _argmin_first(per_shift)
+    for k in range(sectors):
+        if per_shift[k] > threshold:
+            per_shift[k] = np.inf
+    best = _argmin_first(per_shift)
+    return best if per_shift[best] <= threshold else -1
 
 
 @njit(cache=True, nogil=True)
 def nearest(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int,
-            top_k: int, out_distance: np.ndarray, out_shift: np.ndarray) -> None:
-    """:func:`min_over_shifts` that may skip rows which cannot be among the ``top_k``.
+            top_k: int, row_limits: np.ndarray, out_distance: np.ndarray,
+            out_shift: np.ndarray) -> None:
+    """:func:`min_over_shifts` that skips what cannot be among the ``top_k`` or improve a row.
 
-    A row is abandoned (distance +inf, shift -1) once the partial sums of all
-    its shifts exceed the k-th best distance found so far: partial sums only
-    grow, so it is exact, and with a clear nearest keyframe most rows stop
-    after a few sectors. Rows it completes have the same sums as every kernel here.
+    Each row's shifts are dropped once their partial sums exceed the k-th best
+    distance found so far or ``row_limits[i]`` (e.g. the row's distance at a
+    shift already scored; +inf for none): partial sums only grow, so it is
+    exact. A row with no shift left is abandoned (distance +inf, shift -1);
+    with a clear nearest keyframe most rows stop after a few sectors. Rows and
+    shifts it completes have the same sums as every kernel here.
     """
     per_shift = np.empty(sectors, np.float32)
     best = np.empty(top_k, np.float32)
     count = 0
     for i in range(len(rows)):
         threshold = best[top_k - 1] if count == top_k else np.inf
-        k = _nearest_row(store[rows[i]], q, w, sectors, threshold, per_shift)
+        k = _nearest_row(store[rows[i]], q, w, sectors, min(threshold, row_limits[i]), per_shift)
         out_shift[i] = k
         out_distance[i] = per_shift[k] if k >= 0 else np.inf
         if k >= 0:
@@ -143,9 +150,19 @@ def nearest(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.ndarray, s
 @njit(cache=True, nogil=True)
 def at_shifts(store: np.ndarray, rows: np.ndarray, shifts: np.ndarray, q: np.ndarray,
               w: np.ndarray, sectors: int, out: np.ndarray) -> None:
-    """out[i, j] = D_{shifts[i, j]}(q, store[rows[i]]); a negative shift leaves +inf."""
+    """out[i, j] = D_{shifts[i, j]}(q, store[rows[i]]); a negative shift leaves +inf.
+
+    Sector-major over a row, so each stored sector is read from memory once for
+    all of the row's shifts; each shift's sum still runs sector by sector, in
+    the order every kernel here uses.
+    """
+    width = len(w)
     for i in range(len(rows)):
         t = store[rows[i]]
         for j in range(shifts.shape[1]):
-            k = shifts[i, j]
-            out[i, j] = _one_shift(t, q, w, sectors, k) if k >= 0 else np.inf
+            out[i, j] = 0.0 if shifts[i, j] >= 0 else np.inf
+        for s in range(sectors):
+            for j in range(shifts.shape[1]):
+                k = shifts[i, j]
+                if k >= 0:
+                    out[i, j] += _sector_l1(q, ((s + k) % sectors) * width, t, s * width, w)
