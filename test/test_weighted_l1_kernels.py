@@ -70,3 +70,15 @@ def test_nearest_drops_only_what_cannot_win():
     top = np.argsort(d_ref, kind="stable")[:5]
     np.testing.assert_array_equal(d[top], d_ref[top])
     assert np.all((k == -1) | (d == d_ref))
+
+
+def test_store_half_rounds_like_numpy():
+    rng = np.random.default_rng(2)
+    values = np.concatenate([
+        rng.standard_normal(5000) * 10.0 ** rng.integers(-9, 5, 5000),  # subnormal to large
+        np.float16(rng.standard_normal(200)).astype(np.float64) + 2.0**-25,  # near ties
+        [0.0, -0.0, 65504.0, -65504.0, 6.0e-8, 2.9e-8, 3.0e-8],
+    ]).astype(np.float32).reshape(1, -1)
+    bits = np.empty(values.shape, np.uint16)
+    wk.store_half(values, bits)
+    np.testing.assert_array_equal(bits, values.astype(np.float16).view(np.uint16))

@@ -29,6 +29,8 @@ import heapq
 import numpy as np
 from numba import njit
 
+from vbrl_ros.weighted_l1_kernels import as_float32
+
 BLOCK = 128  # keyframes per key block
 MAX_KEY_DIM = 1024  # uint16 sums of nibble differences stay exact up to 4369 entries
 KEY_LEVELS = 7  # a key entry is an integer in [-7, 7], stored as a nibble (value + 8)
@@ -79,7 +81,8 @@ class KeyCodec:
         self.inverse_scale = np.float32(1.0 / scale) if scale > 0 else np.float32(1.0)
 
     def raw(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Unquantised (candidate keys (n, key_dim), yaw keys (n, S, yaw_dim)) of (n, d) float32."""
+        """Unquantised (candidate keys (n, key_dim), yaw keys (n, S, yaw_dim)) of (n, d)
+        float32 (or the uint16 view of float16) descriptors."""
         keys = np.empty((len(x), self.key_dim), np.float32)
         yaw = np.empty((len(x), self.sectors, self.yaw_dim), np.float32)
         raw_keys(x, self.sectors, self.group, self.signed, self.key_dim, self.yaw_group,
@@ -117,6 +120,8 @@ def raw_keys(x: np.ndarray, sectors: int, group: np.ndarray, signed_w: np.ndarra
              out_key: np.ndarray, out_yaw: np.ndarray) -> None:
     """Unquantised keys of (m, S*R) descriptors: out_key (m, key_dim), out_yaw (m, S, G).
 
+    ``x``: float32, or the uint16 view of float16 descriptors.
+
     key[j] = sum_{r in group j} sign_r w_r sum_s x[s, r];
     yaw[s, g] = sum_{r in yaw group g} sign'_r w_r x[s, r] (skipped when G = 0).
     """
@@ -130,11 +135,11 @@ def raw_keys(x: np.ndarray, sectors: int, group: np.ndarray, signed_w: np.ndarra
         for s in range(sectors):  # contiguous, vectorised column sums
             part = row[s * width : (s + 1) * width]
             for r in range(width):
-                column[r] += part[r]
+                column[r] += as_float32(part[r])
             if yaw_dim > 0:
                 yaw = out_yaw[i, s]
                 for r in range(width):
-                    yaw[yaw_group[r]] += yaw_signed_w[r] * part[r]
+                    yaw[yaw_group[r]] += yaw_signed_w[r] * as_float32(part[r])
         out_key[i, :] = 0.0
         for r in range(width):
             out_key[i, group[r]] += signed_w[r] * column[r]

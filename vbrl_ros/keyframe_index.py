@@ -274,21 +274,23 @@ class KeyframeIndex:
 
     def add(self, descriptor_compact: np.ndarray) -> int:
         """Insert one compact descriptor; returns its index (insertion order, from 0). O(d) amortised."""
-        return int(self.add_batch(self.check(descriptor_compact)[None])[0])
+        return int(self._insert(self.check(descriptor_compact)[None])[0])
 
     def add_batch(self, descriptors_compact: np.ndarray) -> np.ndarray:
         """Insert (m, d) descriptors; returns their indices."""
-        x = self.check(descriptors_compact, 2)
+        return self._insert(self.check(descriptors_compact, 2))
+
+    def _insert(self, x: np.ndarray) -> np.ndarray:
         n, m = self._size, len(x)
         self._reserve(n + m)
         for start in range(0, m, _BATCH_ROWS):
             chunk = np.ascontiguousarray(x[start : start + _BATCH_ROWS])
             rows = np.arange(n + start, n + start + len(chunk))
-            stored = self._descriptors[rows[0] : rows[-1] + 1]
-            stored[:] = chunk
-            if self.storage != "float32":  # keys of the values as stored (bounds stay valid)
-                chunk = stored.astype(np.float32)
-            keys, yaw = self.raw_keys(chunk)
+            if self.storage == "float32":
+                self._descriptors[rows[0] : rows[-1] + 1] = chunk
+            else:  # keys of the values as stored, so the bounds stay valid
+                wk.store_half(chunk, self._store()[rows[0] : rows[-1] + 1])
+            keys, yaw = self._codec.raw(self._store()[rows[0] : rows[-1] + 1])
             self._store_yaw_keys(rows[0], yaw)
             self._key_blocks[rows // kk.BLOCK, :, rows % kk.BLOCK] = kk.packed(
                 self._codec.quantised(keys))
