@@ -41,6 +41,11 @@ def test_polar_set_uses_the_given_models_grid_standardisation_and_weights(scans)
     winter = int(np.flatnonzero(data.session == 1)[0])
     turn = np.linalg.solve(scans[winter][1], data.poses[winter])  # T_lidar_rotated
     assert abs(math.atan2(turn[1, 0], turn[0, 0])) > 1e-6
+    # pruned as the node would store it: fewer rows, the same weights on those kept
+    pruned = bd.polar_set(scans[:2], seed=4, model=model, prune=0.8)  # random W: near-uniform
+    kept = model.scorer(prune=0.8)
+    assert len(kept.active_weights) < len(scorer.active_weights)
+    np.testing.assert_array_equal(pruned.weights, kept.active_weights)
 
 
 def test_polar_set_refuses_a_cartesian_model(scans):

@@ -85,12 +85,14 @@ def cartesian_set(scans: list[tuple[np.ndarray, np.ndarray, int]], prune: float 
 
 
 def polar_set(scans: list[tuple[np.ndarray, np.ndarray, int]], sectors: int = 24,
-              off_fraction: float = 1 / 3, seed: int = 0, model: Any = None) -> DescriptorSet:
+              off_fraction: float = 1 / 3, seed: int = 0, model: Any = None,
+              prune: float = 0.0) -> DescriptorSet:
     """Polar-grid compact descriptors; the winter session is rotated by random yaws first.
 
     ``model``: a trained polar :class:`~vbrl_ros.model.VBRLModel` whose grid,
-    standardisation and weights are used instead of the stand-in described in
-    the module docstring.
+    standardisation and weights (pruned by ``prune``, as in
+    :meth:`~vbrl_ros.model.VBRLModel.scorer`) are used instead of the stand-in
+    described in the module docstring.
     """
     from vbrl_ros.config import VBRLConfig, VoxelGridConfig
     from vbrl_ros.default_model import load_default_model
@@ -99,7 +101,7 @@ def polar_set(scans: list[tuple[np.ndarray, np.ndarray, int]], sectors: int = 24
     if model is not None:
         require_polar(model)
         raw, poses = _rotated_descriptors(model.featurizer(), scans, seed)
-        scorer = model.scorer()
+        scorer = model.scorer(prune)
         x = model.standardize(np.asarray(raw, np.float64))
         return DescriptorSet("polar", scorer.compact(x).astype(np.float32), scorer,
                              np.array([s for _, _, s in scans]), poses)

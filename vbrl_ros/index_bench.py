@@ -64,9 +64,13 @@ def measure(sizes: tuple[int, ...] = DEFAULT_SIZES, repeats: int = 50, seed: int
     """
     scans = bd.simulated_scans(spacing_m=3.0)
     sets = {"cartesian": bd.cartesian_set(scans),
-            "polar": bd.polar_set(scans, seed=seed, model=polar_model)}
+            # a trained model's rows as the node stores them (its default weight_prune)
+            "polar": bd.polar_set(scans, seed=seed, model=polar_model,
+                                  prune=PRUNE if polar_model is not None else 0.0)}
+    label = ("stand-in (no trained model)" if polar_model is None
+             else f"{polar_model_name or 'trained model'} (weight_prune {PRUNE}, as the node stores it)")
     results: dict[str, Any] = {"sizes": list(sizes), "repeats": repeats, "drive_scans": len(scans),
-                               "polar_model": polar_model_name or "stand-in (no trained model)",
+                               "polar_model": label,
                                "shapes": {}}
     for name, data in sets.items():
         params = KeyframeIndex(data.weights, sectors=data.sectors).options()
