@@ -183,9 +183,10 @@ def test_bytes_per_keyframe_is_descriptor_key_and_metadata():
     assert db.bytes_breakdown() == {"descriptor": active * 4, "key": key, "yaw_key": 0,
                                     "metadata": METADATA_BYTES_PER_KEYFRAME}
     full = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), model_id="default")
-    assert full.bytes_per_keyframe() == 7872 * 4 + 128 + METADATA_BYTES_PER_KEYFRAME == 31772
+    # 256 + 512 four-bit key entries (scan key, refine key)
+    assert full.bytes_per_keyframe() == 7872 * 4 + 384 + METADATA_BYTES_PER_KEYFRAME == 32028
     half = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), model_id="default", storage="float16")
-    assert half.bytes_per_keyframe() == 7872 * 2 + 128 + METADATA_BYTES_PER_KEYFRAME
+    assert half.bytes_per_keyframe() == 7872 * 2 + 384 + METADATA_BYTES_PER_KEYFRAME
     assert full.cloud_bytes_per_keyframe() == 0.0
 
 

@@ -57,3 +57,27 @@ def test_scan_top_reads_only_the_first_n_keyframes():
     scores = np.empty(5, np.int32)
     found = kk.scan_top(_blocks(keys), _query(query), 200, np.empty(0, np.bool_), 5, rows, scores)
     assert found == 5 and rows.max() < 200
+
+
+def test_refine_scores_are_nibble_l1_distances_of_the_chosen_rows():
+    rng = np.random.default_rng(5)
+    codes = rng.integers(1, 16, (300, 37)).astype(np.uint8)  # odd width: padded with 8
+    query = rng.integers(1, 16, 37).astype(np.uint8)
+    rows = np.sort(rng.choice(300, 50, replace=False)).astype(np.int64)
+    out = np.empty(len(rows), np.int32)
+    kk.refine_scores(kk.packed(codes), rows, _query(query), out)
+    expected = np.abs(codes[rows].astype(np.int32) - query).sum(axis=1)
+    np.testing.assert_array_equal(out, expected)
+
+
+def test_group_sums_bound_the_sector_sums():
+    rng = np.random.default_rng(6)
+    sectors, width, groups = 4, 30, 7
+    x = rng.standard_normal((20, sectors * width)).astype(np.float32)
+    group = rng.integers(0, groups, width)
+    signed = rng.standard_normal(width).astype(np.float32)
+    out = np.empty((20, groups), np.float32)
+    kk.group_sums(x, sectors, group, signed, out)
+    columns = x.reshape(20, sectors, width).sum(axis=1) * signed
+    expected = np.stack([columns[:, group == g].sum(axis=1) for g in range(groups)], axis=1)
+    np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-5)

@@ -283,8 +283,9 @@ def test_incremental_add_after_queries():
 @pytest.mark.parametrize("storage", ["float32", "float16"])
 def test_state_round_trip(tmp_path, storage):
     x, weights, _ = _polar(500, seed=6)
-    index = KeyframeIndex(weights, sectors=12, key_dim=40, candidates=50, rerank=20, yaw_dim=6,
-                          yaw_shifts=3, complete_rows=5, yaw_refine=True, seed=7, storage=storage)
+    index = KeyframeIndex(weights, sectors=12, key_dim=16, candidates=50, rerank=20, yaw_dim=6,
+                          yaw_shifts=3, complete_rows=5, refine_dim=40, scan_pool=3,
+                          yaw_refine=True, seed=7, storage=storage)
     index.add_batch(x)
     path = tmp_path / "db.npz"
     np.savez(path, other=np.arange(3), **index.state())
@@ -299,8 +300,13 @@ def test_state_round_trip(tmp_path, storage):
     assert len(restored) == 501
     state = index.state()
     # files written before complete_rows existed get its default
-    legacy = KeyframeIndex.from_state({**state, "index_params": state["index_params"][:-1]})
+    # files written before complete_rows and the refine key existed get their defaults
+    first = {**state, "index_params": state["index_params"][:8]}
+    first["index_refine_keys"] = KeyframeIndex(weights, sectors=12, key_dim=16, seed=7,
+                                               storage=storage).refine_keys(index.descriptors())
+    legacy = KeyframeIndex.from_state(first)
     assert legacy.complete_rows == KeyframeIndex(weights, sectors=12).complete_rows == 8
+    assert (legacy.refine_dim, legacy.scan_pool) == (40, 4)  # all 40 columns, 4x the candidates
     with pytest.raises(ValueError, match="lacks"):
         KeyframeIndex.from_state({"index_format": np.array("vbrl_ros.keyframe_index")})
     with pytest.raises(ValueError, match="version"):
@@ -328,7 +334,8 @@ def test_rejects_bad_input():
     index.add(np.zeros(50))
     with pytest.raises(ValueError, match="boolean mask"):
         index.search(np.zeros(50), 1, np.ones(2, bool))
-    assert index.bytes_per_keyframe() == 50 * 4 + 8 // 2  # two 4-bit key entries per byte
+    # two 4-bit key entries per byte: 8 scan-key entries, and the refine key over all 50 columns
+    assert index.bytes_per_keyframe() == 50 * 4 + 8 // 2 + 50 // 2
     with pytest.raises(ValueError, match="tied"):
         KeyframeIndex(np.arange(1, 13, dtype=np.float32), sectors=3)
     with pytest.raises(ValueError, match="key_dim"):

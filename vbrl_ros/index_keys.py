@@ -5,7 +5,9 @@ triangle inequality their L1 distances are lower bounds of the Eq. 4 distance
 (see :mod:`vbrl_ros.keyframe_index`):
 
 - the *candidate key* (``key_dim`` entries) sums every column over the sectors
-  first, so it does not change when a scan is rotated by whole sectors;
+  first, so it does not change when a scan is rotated by whole sectors; a
+  finer *refine key* (``refine_dim`` entries, the same construction, stored
+  row-major) re-scores the scan's best candidates;
 - the *yaw key* (``S x G`` entries) keeps the sectors apart, so comparing it
   under every circular shift ranks the candidates and their shifts cheaply.
 
@@ -63,11 +65,18 @@ class KeyCodec:
     """
 
     def __init__(self, column_weights: np.ndarray, sectors: int, key_dim: int, yaw_dim: int,
-                 seed: int, key_clip_sigma: float) -> None:
+                 seed: int, key_clip_sigma: float, refine_dim: int = 0) -> None:
         width = len(column_weights)
         self.sectors, self.key_dim, self.yaw_dim = sectors, key_dim, yaw_dim
+        self.refine_dim = refine_dim
         rng = np.random.default_rng([seed, 0x1DE7])
         w64 = np.asarray(column_weights, np.float64)
+        # the refine key: the same construction with finer groups (own seed stream)
+        fine = np.random.default_rng([seed, 0x2EF1])
+        self.refine_group = energy_balanced_groups(w64**2, max(refine_dim, 1), fine)
+        self.refine_signed = ((fine.integers(0, 2, width) * 2 - 1) * w64).astype(np.float32)
+        self.refine_inverse_scale = self._inverse_scale(w64, self.refine_group, max(refine_dim, 1),
+                                                        key_clip_sigma)
         # Candidate-key groups of equal weight energy (heaviest columns alone), random
         # signs. A random partition let one heavy column set the int8 scale of every
         # group: with a model whose weight sits on a few rows most keys rounded to 0.
@@ -75,10 +84,14 @@ class KeyCodec:
         self.signed = ((rng.integers(0, 2, width) * 2 - 1) * w64).astype(np.float32)
         self.yaw_group = rng.permutation(np.arange(width) % max(yaw_dim, 1)).astype(np.int64)
         self.yaw_signed = ((rng.integers(0, 2, width) * 2 - 1) * w64).astype(np.float32)
+        self.inverse_scale = self._inverse_scale(w64, self.group, key_dim, key_clip_sigma)
+
+    def _inverse_scale(self, w64: np.ndarray, group: np.ndarray, groups: int,
+                       clip_sigma: float) -> np.float32:
         # a key entry sums S * |group| unit-variance terms
-        sigma = np.sqrt(sectors * np.bincount(self.group, weights=w64**2, minlength=key_dim))
-        scale = key_clip_sigma * float(sigma.max()) / KEY_LEVELS
-        self.inverse_scale = np.float32(1.0 / scale) if scale > 0 else np.float32(1.0)
+        sigma = np.sqrt(self.sectors * np.bincount(group, weights=w64**2, minlength=groups))
+        scale = clip_sigma * float(sigma.max()) / KEY_LEVELS
+        return np.float32(1.0 / scale) if scale > 0 else np.float32(1.0)
 
     def raw(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Unquantised (candidate keys (n, key_dim), yaw keys (n, S, yaw_dim)) of (n, d)
@@ -89,10 +102,17 @@ class KeyCodec:
                  self.yaw_signed, keys, yaw)
         return keys, yaw
 
-    def quantised(self, raw: np.ndarray) -> np.ndarray:
+    def quantised(self, raw: np.ndarray, inverse_scale: np.float32 | None = None) -> np.ndarray:
         """Key entries as nibble codes (uint8, value + 8 in [1, 15]), shape of ``raw``."""
-        value = np.clip(np.rint(raw * self.inverse_scale), -KEY_LEVELS, KEY_LEVELS)
+        scale = self.inverse_scale if inverse_scale is None else inverse_scale
+        value = np.clip(np.rint(raw * scale), -KEY_LEVELS, KEY_LEVELS)
         return (value + 8).astype(np.uint8)
+
+    def refine_codes(self, x: np.ndarray) -> np.ndarray:
+        """Refine-key nibble codes (n, refine_dim) of (n, d) float32 (or float16-bit) descriptors."""
+        raw = np.empty((len(x), self.refine_dim), np.float32)
+        group_sums(x, self.sectors, self.refine_group, self.refine_signed, raw)
+        return self.quantised(raw, self.refine_inverse_scale)
 
 
 def packed(codes: np.ndarray) -> np.ndarray:
@@ -152,6 +172,44 @@ def _keep_smallest(codes: np.ndarray, size: int, want: int) -> int:
         return size
     codes[:size] = np.partition(codes[:size], want - 1)
     return want
+
+
+@njit(cache=True, nogil=True)
+def group_sums(x: np.ndarray, sectors: int, group: np.ndarray, signed_w: np.ndarray,
+               out: np.ndarray) -> None:
+    """out[i, j] = sum_{r in group j} sign_r w_r sum_s x[i, s, r] (x float32 or float16 bits)."""
+    width = len(group)
+    column = np.empty(width, np.float32)
+    for i in range(x.shape[0]):
+        row = x[i]
+        column[:] = 0.0
+        for s in range(sectors):
+            part = row[s * width : (s + 1) * width]
+            for r in range(width):
+                column[r] += as_float32(part[r])
+        out[i, :] = 0.0
+        for r in range(width):
+            out[i, group[r]] += signed_w[r] * column[r]
+
+
+@njit(cache=True, nogil=True)
+def refine_scores(keys: np.ndarray, rows: np.ndarray, query: np.ndarray, out: np.ndarray) -> None:
+    """out[i] = L1 distance of row-major packed keys[rows[i]] to the query's nibble codes.
+
+    Per row, the byte distances go to a uint8 buffer first and are summed in a
+    second loop: both vectorise (one fused loop did not; 2x slower).
+    """
+    pairs = keys.shape[1]
+    low, high = query[0::2].copy(), query[1::2].copy()
+    byte_distance = np.empty(pairs, np.uint8)
+    for i in range(len(rows)):
+        packed_row = keys[rows[i]]
+        for p in range(pairs):
+            byte_distance[p] = _nibble_distance(packed_row[p], low[p], high[p])
+        total = 0
+        for p in range(pairs):
+            total += byte_distance[p]
+        out[i] = total
 
 
 @njit(cache=True, nogil=True, inline="always")

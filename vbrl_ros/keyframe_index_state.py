@@ -23,8 +23,8 @@ INDEX_FORMAT = "vbrl_ros.keyframe_index"
 INDEX_FORMAT_VERSION = 3
 _REKEYED_VERSIONS = (2,)  # readable: same descriptors and parameters, keys recomputed
 _PARAMS = ("sectors", "key_dim", "candidates", "rerank", "yaw_dim", "yaw_shifts", "yaw_refine",
-           "seed", "complete_rows")
-_LEGACY_PARAMS = len(_PARAMS) - 1  # written before complete_rows existed: its default applies
+           "seed", "complete_rows", "refine_dim", "scan_pool")
+_FIRST_PARAMS = 8  # files written before the later parameters existed: their defaults apply
 _KEY_CHECK_ROWS = 64
 _REKEY_ROWS = 4096
 
@@ -40,6 +40,7 @@ def index_state(index: KeyframeIndex, prefix: str) -> dict[str, np.ndarray]:
         f"{prefix}descriptors": np.array(index.descriptors()),
         f"{prefix}keys": index.stored_keys(),
         f"{prefix}yaw_keys": index.stored_yaw_keys(),
+        f"{prefix}refine_keys": index.stored_refine_keys(),
     }
 
 
@@ -58,7 +59,8 @@ def index_from_state(cls: type[KeyframeIndex], arrays: Mapping[str, np.ndarray],
         raise ValueError(f"keyframe index state version {version}; this code reads {readable}")
     rekey = int(version) in _REKEYED_VERSIONS
     params = get("params")
-    if params.shape not in ((len(_PARAMS),), (_LEGACY_PARAMS,)) or params.dtype.kind not in "iu":
+    if (params.ndim != 1 or not _FIRST_PARAMS <= len(params) <= len(_PARAMS)
+            or params.dtype.kind not in "iu"):
         raise ValueError(f"index params have shape {params.shape}, expected ({len(_PARAMS)},) integers")
     options: dict[str, Any] = {name: int(value) for name, value in zip(_PARAMS, params)}
     options["yaw_refine"] = bool(options["yaw_refine"])
@@ -74,9 +76,16 @@ def index_from_state(cls: type[KeyframeIndex], arrays: Mapping[str, np.ndarray],
         raise ValueError("descriptors contain NaN or inf")
     if rekey:  # candidate keys of the 8-bit construction (yaw keys are unchanged)
         keys = np.empty((n, index.key_dim), np.int8)
+        refine = np.empty((n, index.refine_dim), np.int8)
         for start in range(0, n, _REKEY_ROWS):
-            keys[start : start + _REKEY_ROWS] = index.keys(
-                descriptors[start : start + _REKEY_ROWS].astype(np.float32))
+            chunk = descriptors[start : start + _REKEY_ROWS].astype(np.float32)
+            keys[start : start + len(chunk)] = index.keys(chunk)
+            refine[start : start + len(chunk)] = index.refine_keys(chunk)
+    else:
+        refine = get("refine_keys")
+    if refine.shape != (n, index.refine_dim) or refine.dtype != np.int8:
+        raise ValueError(f"refine keys have shape {refine.shape} {refine.dtype}, "
+                         f"expected ({n}, {index.refine_dim}) int8")
     if keys.shape != (n, index.key_dim) or keys.dtype != np.int8:
         raise ValueError(f"keys have shape {keys.shape} {keys.dtype}, "
                          f"expected ({n}, {index.key_dim}) int8")
@@ -84,8 +93,10 @@ def index_from_state(cls: type[KeyframeIndex], arrays: Mapping[str, np.ndarray],
         raise ValueError(f"yaw keys have shape {yaw.shape} {yaw.dtype}, "
                          f"expected ({n}, {index.sectors}, {index.yaw_dim}) float32")
     sample = np.unique(np.linspace(0, n - 1, min(n, _KEY_CHECK_ROWS)).astype(np.int64))
-    if n and (not np.array_equal(index.keys(descriptors[sample]), keys[sample])
-              or not np.array_equal(index.raw_keys(descriptors[sample])[1], yaw[sample])):
+    sampled = descriptors[sample].astype(np.float32)
+    if n and (not np.array_equal(index.keys(sampled), keys[sample])
+              or not np.array_equal(index.raw_keys(sampled)[1], yaw[sample])
+              or not np.array_equal(index.refine_keys(sampled), refine[sample])):
         raise ValueError("stored keys do not match the descriptors (other key parameters?)")
-    index._adopt(descriptors, keys, yaw)
+    index._adopt(descriptors, keys, yaw, refine)
     return index
