@@ -15,10 +15,6 @@ def _blocks(codes: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(padded.reshape(-1, kk.BLOCK, width).transpose(0, 2, 1))
 
 
-def _query(codes: np.ndarray) -> np.ndarray:
-    return kk.unpacked(kk.packed(codes[None]), 2 * -(-len(codes) // 2))[0]  # padded like keys
-
-
 def test_packing_round_trips_odd_and_even_widths():
     rng = np.random.default_rng(0)
     for key_dim in (1, 7, 8, 255):
@@ -40,7 +36,7 @@ def test_scan_top_is_the_want_smallest_with_lower_rows_on_ties(n, key_dim, want,
     for allowed in (np.empty(0, np.bool_), rng.random(n) < 0.3):
         rows = np.empty(want, np.int64)
         scores = np.empty(want, np.int32)
-        found = kk.scan_top(_blocks(keys), _query(query), n, allowed, want, rows, scores)
+        found = kk.scan_top(_blocks(keys), kk.padded(query), n, allowed, want, rows, scores)
         reference = np.abs(keys.astype(np.int32) - query).sum(axis=1)
         candidates = np.arange(n) if len(allowed) == 0 else np.flatnonzero(allowed)
         expected = candidates[np.lexsort((candidates, reference[candidates]))][:want]
@@ -55,7 +51,7 @@ def test_scan_top_reads_only_the_first_n_keyframes():
     query = keys[250].copy()  # distance 0, but beyond n
     rows = np.empty(5, np.int64)
     scores = np.empty(5, np.int32)
-    found = kk.scan_top(_blocks(keys), _query(query), 200, np.empty(0, np.bool_), 5, rows, scores)
+    found = kk.scan_top(_blocks(keys), kk.padded(query), 200, np.empty(0, np.bool_), 5, rows, scores)
     assert found == 5 and rows.max() < 200
 
 
@@ -65,19 +61,21 @@ def test_refine_scores_are_nibble_l1_distances_of_the_chosen_rows():
     query = rng.integers(1, 16, 37).astype(np.uint8)
     rows = np.sort(rng.choice(300, 50, replace=False)).astype(np.int64)
     out = np.empty(len(rows), np.int32)
-    kk.refine_scores(kk.packed(codes), rows, _query(query), out)
+    kk.refine_scores(kk.packed(codes), rows, kk.padded(query), out)
     expected = np.abs(codes[rows].astype(np.int32) - query).sum(axis=1)
     np.testing.assert_array_equal(out, expected)
 
 
-def test_group_sums_bound_the_sector_sums():
+def test_raw_keys_group_the_sector_sums():
     rng = np.random.default_rng(6)
     sectors, width, groups = 4, 30, 7
     x = rng.standard_normal((20, sectors * width)).astype(np.float32)
     group = rng.integers(0, groups, width)
     signed = rng.standard_normal(width).astype(np.float32)
+    keys = np.empty((20, 3), np.float32)
     out = np.empty((20, groups), np.float32)
-    kk.group_sums(x, sectors, group, signed, out)
+    kk.raw_keys(x, sectors, group % 3, signed, group, signed, np.zeros(width, np.int64), signed,
+                keys, out, np.empty((20, sectors, 0), np.float32))
     columns = x.reshape(20, sectors, width).sum(axis=1) * signed
     expected = np.stack([columns[:, group == g].sum(axis=1) for g in range(groups)], axis=1)
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-5)

@@ -93,26 +93,29 @@ class KeyCodec:
         scale = clip_sigma * float(sigma.max()) / KEY_LEVELS
         return np.float32(1.0 / scale) if scale > 0 else np.float32(1.0)
 
-    def raw(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Unquantised (candidate keys (n, key_dim), yaw keys (n, S, yaw_dim)) of (n, d)
-        float32 (or the uint16 view of float16) descriptors."""
+    def raw(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Unquantised (candidate keys (n, key_dim), yaw keys (n, S, yaw_dim), refine keys
+        (n, refine_dim)) of (n, d) float32 (or the uint16 view of float16) descriptors,
+        from one pass over them."""
         keys = np.empty((len(x), self.key_dim), np.float32)
         yaw = np.empty((len(x), self.sectors, self.yaw_dim), np.float32)
-        raw_keys(x, self.sectors, self.group, self.signed, self.key_dim, self.yaw_group,
-                 self.yaw_signed, keys, yaw)
-        return keys, yaw
+        refine = np.empty((len(x), self.refine_dim), np.float32)
+        raw_keys(x, self.sectors, self.group, self.signed, self.refine_group, self.refine_signed,
+                 self.yaw_group, self.yaw_signed, keys, refine, yaw)
+        return keys, yaw, refine
 
-    def quantised(self, raw: np.ndarray, inverse_scale: np.float32 | None = None) -> np.ndarray:
-        """Key entries as nibble codes (uint8, value + 8 in [1, 15]), shape of ``raw``."""
-        scale = self.inverse_scale if inverse_scale is None else inverse_scale
-        value = np.clip(np.rint(raw * scale), -KEY_LEVELS, KEY_LEVELS)
-        return (value + 8).astype(np.uint8)
+    def quantised(self, raw: np.ndarray) -> np.ndarray:
+        """Candidate-key entries as nibble codes (uint8, value + 8 in [1, 15]), shape of ``raw``."""
+        return _nibble_codes(raw, self.inverse_scale)
 
-    def refine_codes(self, x: np.ndarray) -> np.ndarray:
-        """Refine-key nibble codes (n, refine_dim) of (n, d) float32 (or float16-bit) descriptors."""
-        raw = np.empty((len(x), self.refine_dim), np.float32)
-        group_sums(x, self.sectors, self.refine_group, self.refine_signed, raw)
-        return self.quantised(raw, self.refine_inverse_scale)
+    def refine_quantised(self, raw: np.ndarray) -> np.ndarray:
+        """Refine-key entries as nibble codes, on the refine key's own scale."""
+        return _nibble_codes(raw, self.refine_inverse_scale)
+
+
+def _nibble_codes(raw: np.ndarray, inverse_scale: np.float32) -> np.ndarray:
+    value = np.clip(np.rint(raw * inverse_scale), -KEY_LEVELS, KEY_LEVELS)
+    return (value + 8).astype(np.uint8)
 
 
 def packed(codes: np.ndarray) -> np.ndarray:
@@ -126,6 +129,13 @@ def packed(codes: np.ndarray) -> np.ndarray:
     return (even[:, 0::2] | (even[:, 1::2] << 4)).astype(np.uint8)
 
 
+def padded(codes: np.ndarray) -> np.ndarray:
+    """One key's nibble codes padded to an even length as :func:`packed` pads: a scan query."""
+    out = np.full(len(codes) + len(codes) % 2, 8, np.uint8)
+    out[: len(codes)] = codes
+    return out
+
+
 def unpacked(pairs: np.ndarray, key_dim: int) -> np.ndarray:
     """Inverse of :func:`packed`: nibble codes (n, key_dim)."""
     codes = np.empty((len(pairs), 2 * pairs.shape[1]), np.uint8)
@@ -136,14 +146,16 @@ def unpacked(pairs: np.ndarray, key_dim: int) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def raw_keys(x: np.ndarray, sectors: int, group: np.ndarray, signed_w: np.ndarray,
-             key_dim: int, yaw_group: np.ndarray, yaw_signed_w: np.ndarray,
-             out_key: np.ndarray, out_yaw: np.ndarray) -> None:
-    """Unquantised keys of (m, S*R) descriptors: out_key (m, key_dim), out_yaw (m, S, G).
+             refine_group: np.ndarray, refine_signed_w: np.ndarray, yaw_group: np.ndarray,
+             yaw_signed_w: np.ndarray, out_key: np.ndarray, out_refine: np.ndarray,
+             out_yaw: np.ndarray) -> None:
+    """Unquantised keys of (m, S*R) descriptors: out_key (m, key_dim), out_refine
+    (m, refine_dim; skipped when 0), out_yaw (m, S, G; skipped when G = 0).
 
     ``x``: float32, or the uint16 view of float16 descriptors.
 
-    key[j] = sum_{r in group j} sign_r w_r sum_s x[s, r];
-    yaw[s, g] = sum_{r in yaw group g} sign'_r w_r x[s, r] (skipped when G = 0).
+    key[j] = sum_{r in group j} sign_r w_r sum_s x[s, r] (refine: its own groups, signs);
+    yaw[s, g] = sum_{r in yaw group g} sign'_r w_r x[s, r].
     """
     width = len(group)
     yaw_dim = out_yaw.shape[2]
@@ -163,6 +175,10 @@ def raw_keys(x: np.ndarray, sectors: int, group: np.ndarray, signed_w: np.ndarra
         out_key[i, :] = 0.0
         for r in range(width):
             out_key[i, group[r]] += signed_w[r] * column[r]
+        if out_refine.shape[1] > 0:
+            out_refine[i, :] = 0.0
+            for r in range(width):
+                out_refine[i, refine_group[r]] += refine_signed_w[r] * column[r]
 
 
 @njit(cache=True, nogil=True)
@@ -172,24 +188,6 @@ def _keep_smallest(codes: np.ndarray, size: int, want: int) -> int:
         return size
     codes[:size] = np.partition(codes[:size], want - 1)
     return want
-
-
-@njit(cache=True, nogil=True)
-def group_sums(x: np.ndarray, sectors: int, group: np.ndarray, signed_w: np.ndarray,
-               out: np.ndarray) -> None:
-    """out[i, j] = sum_{r in group j} sign_r w_r sum_s x[i, s, r] (x float32 or float16 bits)."""
-    width = len(group)
-    column = np.empty(width, np.float32)
-    for i in range(x.shape[0]):
-        row = x[i]
-        column[:] = 0.0
-        for s in range(sectors):
-            part = row[s * width : (s + 1) * width]
-            for r in range(width):
-                column[r] += as_float32(part[r])
-        out[i, :] = 0.0
-        for r in range(width):
-            out[i, group[r]] += signed_w[r] * column[r]
 
 
 @njit(cache=True, nogil=True)

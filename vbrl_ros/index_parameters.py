@@ -34,7 +34,6 @@ def default_parameters(width: int, sectors: int) -> dict[str, int]:
     """
     polar = sectors > 1
     key_dim = min(DEFAULT_KEY_DIM, width)
-    refine_dim = min(DEFAULT_REFINE_DIM, width)
     return {
         "key_dim": key_dim,
         "candidates": 1024 if polar else 512,
@@ -42,7 +41,7 @@ def default_parameters(width: int, sectors: int) -> dict[str, int]:
         "yaw_dim": min(width, 32) if polar else 0,
         "yaw_shifts": min(sectors, 2),
         "complete_rows": 8 if polar else 0,
-        "refine_dim": refine_dim if refine_dim > key_dim else 0,
+        "refine_dim": _default_refine_dim(width, key_dim),
         "scan_pool": DEFAULT_SCAN_POOL,
     }
 
@@ -54,16 +53,23 @@ def search_parameters(width: int, sectors: int, **given: int | None) -> dict[str
     """
     chosen = {name: default if given.get(name) is None else given[name]
               for name, default in default_parameters(width, sectors).items()}
-    if given.get("refine_dim") is None and isinstance(chosen["key_dim"], (int, np.integer)):
-        # finer than the key actually used, or none
-        refine = min(DEFAULT_REFINE_DIM, width)
-        chosen["refine_dim"] = refine if refine > chosen["key_dim"] else 0
     polar = sectors > 1
     limits = {"key_dim": (1, min(width, MAX_KEY_DIM)), "candidates": (1, _MAX_INT),
               "rerank": (1, _MAX_INT), "yaw_dim": (1, width) if polar else (0, 0),
               "yaw_shifts": (1, sectors), "complete_rows": (0, _MAX_INT),
               "refine_dim": (0, min(width, MAX_KEY_DIM)), "scan_pool": (1, 64)}
-    return {name: checked_int(name, chosen[name], *limits[name]) for name in limits}
+    checked = {}
+    for name in limits:  # key_dim before refine_dim, whose default depends on it
+        if name == "refine_dim" and given.get(name) is None:
+            chosen[name] = _default_refine_dim(width, checked["key_dim"])
+        checked[name] = checked_int(name, chosen[name], *limits[name])
+    return checked
+
+
+def _default_refine_dim(width: int, key_dim: int) -> int:
+    """A refine key finer than the scan key actually used, or none."""
+    refine = min(DEFAULT_REFINE_DIM, width)
+    return refine if refine > key_dim else 0
 
 
 def checked_int(name: str, value: object, low: int, high: int) -> int:

@@ -21,7 +21,7 @@ descriptor the index keeps small keys and searches in (up to) four stages:
    with ``refine_dim`` groups, kept row-major) re-scores those and keeps the
    ``candidates`` best. Twice the groups rank the true match much better (at
    100k keyframes, within the 1024 candidates for 32 of 40 winter queries
-   instead of 26) but would double the scan; re-scoring 4096 costs ~0.2 ms.
+   instead of 26) but would double the scan; re-scoring 4096 costs ~0.5-0.7 ms.
 2. **Yaw keys** (S > 1). Re-ranking C candidates at all S shifts costs
    C * S * d, and summing over sectors discards where things are around the
    sensor, so the invariant key is coarse. A per-sector yaw key — ``yaw_dim``
@@ -33,7 +33,8 @@ descriptor the index keeps small keys and searches in (up to) four stages:
    sums as :meth:`KeyframeIndex.exact_search` (:mod:`vbrl_ros.weighted_l1_kernels`),
    so a keyframe's distance is bitwise the same in both.
 4. **Shift completion** (S > 1): the ``complete_rows`` nearest keyframes so far
-   are scored at every shift (abandoning those that cannot reach the top_k).
+   are scored at every shift (dropping a shift once its partial sum exceeds
+   the keyframe's stage-3 distance or the top_k cut-off: it cannot win).
    The yaw key ranks the best shift first for only ~83 % of true matches (in
    the top 2 for ~93 %, measured on a simulated drive), and a true match
    scored at a wrong shift looks far away; completing a few rows is the
@@ -101,11 +102,13 @@ class SearchResult:
     yaws: np.ndarray  # float64
 
 
-def _padded(codes: np.ndarray) -> np.ndarray:
-    """Query nibble codes padded to an even length, as :func:`~vbrl_ros.index_keys.packed` pads."""
-    out = np.full(len(codes) + len(codes) % 2, 8, np.uint8)
-    out[: len(codes)] = codes
-    return out
+def _lowest_bounds(rows: np.ndarray, bounds: np.ndarray,
+                   count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``count`` rows (ascending) whose smallest bound over shifts is lowest (ties: lower row)."""
+    if len(rows) <= count:
+        return rows, bounds
+    chosen = np.sort(np.lexsort((rows, bounds.min(axis=1)))[:count])
+    return rows[chosen], bounds[chosen]
 
 
 def grown(array: np.ndarray, needed: int) -> np.ndarray:
@@ -264,7 +267,7 @@ class KeyframeIndex:
         axis) are lower bounds of D_k for every shift k.
         """
         x = np.ascontiguousarray(descriptors, dtype=np.float32).reshape(-1, self.dimension)
-        return self._codec.raw(x)
+        return self._codec.raw(x)[:2]
 
     def keys(self, descriptors: np.ndarray) -> np.ndarray:
         """Candidate keys (n, key_dim) or (key_dim,) of compact descriptors: int8 in [-7, 7]."""
@@ -275,9 +278,7 @@ class KeyframeIndex:
     def refine_keys(self, descriptors: np.ndarray) -> np.ndarray:
         """Refine keys (n, refine_dim) of compact descriptors (n, d): int8 in [-7, 7]."""
         x = np.ascontiguousarray(descriptors, dtype=np.float32).reshape(-1, self.dimension)
-        if not self.refine_dim:
-            return np.empty((len(x), 0), np.int8)
-        return self._codec.refine_codes(x).astype(np.int8) - 8
+        return self._codec.refine_quantised(self._codec.raw(x)[2]).astype(np.int8) - 8
 
     def stored_refine_keys(self) -> np.ndarray:
         """The stored refine keys (n, refine_dim), int8 in [-7, 7]."""
@@ -325,9 +326,8 @@ class KeyframeIndex:
             else:  # keys of the values as stored, so the bounds stay valid
                 wk.store_half(chunk, self._store()[rows[0] : rows[-1] + 1])
             stored = self._store()[rows[0] : rows[-1] + 1]
-            keys, yaw = self._codec.raw(stored)
-            if self.refine_dim:
-                self._refine_keys[rows[0] : rows[-1] + 1] = kk.packed(self._codec.refine_codes(stored))
+            keys, yaw, refine = self._codec.raw(stored)
+            self._refine_keys[rows[0] : rows[-1] + 1] = kk.packed(self._codec.refine_quantised(refine))
             self._store_yaw_keys(rows[0], yaw)
             self._key_blocks[rows // kk.BLOCK, :, rows % kk.BLOCK] = kk.packed(
                 self._codec.quantised(keys))
@@ -368,30 +368,27 @@ class KeyframeIndex:
             self._nearest(q, rows, min(top_k, len(rows)), distances, shifts)
             done = shifts >= 0  # the others provably are not among the top_k
             return self._result(q, rows[done], distances[done], shifts[done], top_k)
-        key, yaw_key = self.raw_keys(q)
+        key, yaw_key, refine_key = self._codec.raw(q[None])
         # stage 1: rotation-invariant keys (mask applied inside the scan), then the finer
         # refine key over the scan's best scan_pool x candidates
         want = min(max(self.candidates, top_k), n)
         pool = min(want * self.scan_pool, n) if self.refine_dim else want
         rows = np.empty(pool, np.int64)
         scores = np.empty(pool, np.int32)
-        found = kk.scan_top(self._key_blocks, _padded(self._codec.quantised(key[0])), n,
+        found = kk.scan_top(self._key_blocks, kk.padded(self._codec.quantised(key[0])), n,
                             np.empty(0, np.bool_) if mask is None else mask, pool, rows, scores)
         rows = np.sort(rows[:found])  # sequential memory access for the gathers
         if self.refine_dim and len(rows) > want:
             fine = np.empty(len(rows), np.int32)
-            kk.refine_scores(self._refine_keys, rows, _padded(self._codec.refine_codes(q[None])[0]),
-                             fine)
+            kk.refine_scores(self._refine_keys, rows,
+                             kk.padded(self._codec.refine_quantised(refine_key[0])), fine)
             codes = (fine.astype(np.int64) << 32) | rows  # smaller score, then lower row
             rows = np.sort(np.partition(codes, want - 1)[:want] & 0xFFFFFFFF)
         if self.sectors == 1:
             tried = np.zeros((len(rows), 1), np.int64)
         else:  # stage 2: yaw-key bounds at every shift
             keep = max(self.rerank, top_k)
-            rows, bounds = self._yaw_bounds(rows, yaw_key[0], keep)
-            if len(rows) > keep:
-                chosen = np.sort(np.lexsort((rows, bounds.min(axis=1)))[:keep])
-                rows, bounds = rows[chosen], bounds[chosen]
+            rows, bounds = _lowest_bounds(*self._yaw_bounds(rows, yaw_key[0], keep), keep)
             tried = np.sort(np.argsort(bounds, axis=1, kind="stable")[:, : self.yaw_shifts], axis=1)
         # stage 3: exact distances at the shifts tried
         at = self._at_shifts(q, rows, tried)
@@ -417,10 +414,7 @@ class KeyframeIndex:
         if split:
             kk.yaw_bounds(self._yaw_coarse, rows, np.ascontiguousarray(query_yaw[:, :split]),
                           bounds)
-            screen = _SCREEN_PER_KEPT * keep
-            if len(rows) > screen:
-                chosen = np.sort(np.lexsort((rows, bounds.min(axis=1)))[:screen])
-                rows, bounds = rows[chosen], bounds[chosen]
+            rows, bounds = _lowest_bounds(rows, bounds, _SCREEN_PER_KEPT * keep)
         rest = np.empty((len(rows), self.sectors), np.float32)
         kk.yaw_bounds(self._yaw_fine, rows, np.ascontiguousarray(query_yaw[:, split:]), rest)
         return rows, bounds + rest if split else rest
