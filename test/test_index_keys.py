@@ -26,7 +26,7 @@ def test_packing_round_trips_odd_and_even_widths():
 @pytest.mark.parametrize("n, key_dim, want, levels", [
     (1000, 1024, 37, 16),  # full range at the longest key: |a - q| up to 15 per entry
     (5000, 63, 300, 3),  # few levels: many tied scores, ties go to the lower row; odd width
-    (130, 8, 500, 16),  # want > n: everything, in any order
+    (130, 8, 500, 16),  # want > n: everything
     (20000, 32, 1, 16),
 ])
 def test_scan_top_is_the_want_smallest_with_lower_rows_on_ties(n, key_dim, want, levels):
@@ -41,7 +41,7 @@ def test_scan_top_is_the_want_smallest_with_lower_rows_on_ties(n, key_dim, want,
         candidates = np.arange(n) if len(allowed) == 0 else np.flatnonzero(allowed)
         expected = candidates[np.lexsort((candidates, reference[candidates]))][:want]
         assert found == len(expected)
-        assert np.array_equal(np.sort(rows[:found]), np.sort(expected))
+        assert np.array_equal(rows[:found], np.sort(expected))  # in ascending row order
         assert np.array_equal(scores[:found], reference[rows[:found]])
 
 
@@ -79,3 +79,28 @@ def test_raw_keys_group_the_sector_sums():
     columns = x.reshape(20, sectors, width).sum(axis=1) * signed
     expected = np.stack([columns[:, group == g].sum(axis=1) for g in range(groups)], axis=1)
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_yaw_bounds_are_the_shifted_l1_distances_at_the_given_shifts():
+    rng = np.random.default_rng(7)
+    sectors, groups = 6, 5
+    keys = rng.standard_normal((40, sectors, groups)).astype(np.float32)
+    query = rng.standard_normal((sectors, groups)).astype(np.float32)
+    rows = np.array([3, 17, 39], np.int64)
+    for shifts in (np.broadcast_to(np.arange(sectors), (3, sectors)),  # every shift
+                   np.array([[0, 5], [2, 3], [4, 4]], np.int64)):
+        out = np.empty(shifts.shape, np.float32)
+        kk.yaw_bounds(keys, rows, query, shifts, out)
+        expected = [[np.abs(np.roll(query, -k, axis=0) - keys[row]).sum() for k in ks]
+                    for row, ks in zip(rows, shifts)]
+        np.testing.assert_allclose(out, expected, rtol=1e-5)
+
+
+def test_smallest_per_row_are_the_stable_argsort_positions_ascending():
+    rng = np.random.default_rng(8)
+    values = rng.integers(0, 6, (200, 24)).astype(np.float32)  # many ties: lower position wins
+    for m in (1, 4, 24):
+        out = np.empty((200, m), np.int64)
+        kk.smallest_per_row(values, out)
+        expected = np.sort(np.argsort(values, axis=1, kind="stable")[:, :m], axis=1)
+        np.testing.assert_array_equal(out, expected)

@@ -285,7 +285,7 @@ def test_state_round_trip(tmp_path, storage):
     x, weights, _ = _polar(500, seed=6)
     index = KeyframeIndex(weights, sectors=12, key_dim=16, candidates=50, rerank=20, yaw_dim=6,
                           yaw_shifts=3, complete_rows=5, refine_dim=40, scan_pool=3,
-                          yaw_refine=True, seed=7, storage=storage)
+                          bound_shifts=5, yaw_refine=True, seed=7, storage=storage)
     index.add_batch(x)
     path = tmp_path / "db.npz"
     np.savez(path, other=np.arange(3), **index.state())
@@ -299,14 +299,14 @@ def test_state_round_trip(tmp_path, storage):
     restored.add(x[0])
     assert len(restored) == 501
     state = index.state()
-    # files written before complete_rows existed get its default
-    # files written before complete_rows and the refine key existed get their defaults
+    # files written before complete_rows, the refine key and bound_shifts existed get defaults
     first = {**state, "index_params": state["index_params"][:8]}
     first["index_refine_keys"] = KeyframeIndex(weights, sectors=12, key_dim=16, seed=7,
                                                storage=storage).refine_keys(index.descriptors())
     legacy = KeyframeIndex.from_state(first)
     assert legacy.complete_rows == KeyframeIndex(weights, sectors=12).complete_rows == 8
     assert (legacy.refine_dim, legacy.scan_pool) == (40, 4)  # all 40 columns, 4x the candidates
+    assert legacy.bound_shifts == 4
     with pytest.raises(ValueError, match="lacks"):
         KeyframeIndex.from_state({"index_format": np.array("vbrl_ros.keyframe_index")})
     with pytest.raises(ValueError, match="version"):
@@ -344,6 +344,10 @@ def test_rejects_bad_input():
         KeyframeIndex(np.ones(24, np.float32), sectors=4, yaw_shifts=5)
     with pytest.raises(ValueError, match="complete_rows"):
         KeyframeIndex(np.ones(24, np.float32), sectors=4, complete_rows=-1)
+    # the shifts tried exactly are chosen among the bounded ones: at least yaw_shifts of them
+    with pytest.raises(ValueError, match=r"bound_shifts must be an integer in \[3, 4\]"):
+        KeyframeIndex(np.ones(24, np.float32), sectors=4, yaw_shifts=3, bound_shifts=2)
+    assert KeyframeIndex(np.ones(48, np.float32), sectors=8, yaw_shifts=6).bound_shifts == 6
     with pytest.raises(ValueError, match="yaw_dim"):
         KeyframeIndex(np.ones(24, np.float32), yaw_dim=3)  # one sector: no yaw key
 

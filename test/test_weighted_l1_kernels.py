@@ -82,3 +82,24 @@ def test_store_half_rounds_like_numpy():
     bits = np.empty(values.shape, np.uint16)
     wk.store_half(values, bits)
     np.testing.assert_array_equal(bits, values.astype(np.float16).view(np.uint16))
+
+
+def test_at_shifts_keeping_the_nearest_rows_drops_only_the_others():
+    rng = np.random.default_rng(2)
+    sectors, width, n, keep = 8, 29, 80, 5
+    store = rng.standard_normal((n, sectors * width)).astype(np.float32)
+    q = store[40] + 0.1 * rng.standard_normal(sectors * width).astype(np.float32)
+    w = rng.random(width).astype(np.float32)
+    rows = rng.permutation(n).astype(np.int64)
+    shifts = rng.integers(-1, sectors, (n, 3))
+    shifts[:, 0] = rng.integers(0, sectors, n)  # at least one shift per row
+    full, kept = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+    wk.at_shifts(store, rows, shifts, q, w, sectors, full)
+    wk.at_shifts(store, rows, shifts, q, w, sectors, kept, keep)
+    nearest = np.argsort(full.min(axis=1), kind="stable")[:keep]
+    # the nearest rows keep their best shift and distance, bit for bit (a worse shift may go)
+    np.testing.assert_array_equal(kept[nearest].min(axis=1), full[nearest].min(axis=1))
+    np.testing.assert_array_equal(kept[nearest].argmin(axis=1), full[nearest].argmin(axis=1))
+    finite = np.isfinite(kept)
+    np.testing.assert_array_equal(kept[finite], full[finite])  # what is kept is exact
+    assert finite.sum() < np.isfinite(full).sum() / 2  # and most of the rest was dropped

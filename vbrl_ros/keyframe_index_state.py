@@ -23,7 +23,7 @@ INDEX_FORMAT = "vbrl_ros.keyframe_index"
 INDEX_FORMAT_VERSION = 3
 _REKEYED_VERSIONS = (2,)  # readable: same descriptors and parameters, keys recomputed
 _PARAMS = ("sectors", "key_dim", "candidates", "rerank", "yaw_dim", "yaw_shifts", "yaw_refine",
-           "seed", "complete_rows", "refine_dim", "scan_pool")
+           "seed", "complete_rows", "refine_dim", "scan_pool", "bound_shifts")
 _FIRST_PARAMS = 8  # files written before the later parameters existed: their defaults apply
 _KEY_CHECK_ROWS = 64
 _REKEY_ROWS = 4096

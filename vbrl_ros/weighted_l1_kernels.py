@@ -173,20 +173,40 @@ def nearest(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.ndarray, s
 
 @njit(cache=True, nogil=True)
 def at_shifts(store: np.ndarray, rows: np.ndarray, shifts: np.ndarray, q: np.ndarray,
-              w: np.ndarray, sectors: int, out: np.ndarray) -> None:
+              w: np.ndarray, sectors: int, out: np.ndarray, keep: int = 0) -> None:
     """out[i, j] = D_{shifts[i, j]}(q, store[rows[i]]); a negative shift leaves +inf.
 
     Sector-major over a row, so each stored sector is read from memory once for
     all of the row's shifts; each shift's sum still runs sector by sector, in
     the order every kernel here uses.
+
+    ``keep`` > 0: only the ``keep`` rows with the smallest distance (over their
+    shifts) are wanted. Once ``keep`` rows are done, a shift is dropped (+inf)
+    as soon as its partial sum exceeds the keep-th smallest row distance so
+    far: it cannot make its row one of them. Exact for the rows that are; pass
+    the most promising rows first so the cut-off tightens early.
     """
     width = len(w)
+    best = np.empty(max(keep, 1), np.float32)
+    count = 0
     for i in range(len(rows)):
+        threshold = best[keep - 1] if keep > 0 and count == keep else np.inf
         t = store[rows[i]]
         for j in range(shifts.shape[1]):
             out[i, j] = 0.0 if shifts[i, j] >= 0 else np.inf
         for s in range(sectors):
+            alive = 0
             for j in range(shifts.shape[1]):
                 k = shifts[i, j]
-                if k >= 0:
+                if k >= 0 and out[i, j] <= threshold:
                     out[i, j] += _sector_l1(q, ((s + k) % sectors) * width, t, s * width, w)
+                    alive += 1
+            if alive == 0:
+                break
+        nearest = np.float32(np.inf)
+        for j in range(shifts.shape[1]):
+            if out[i, j] > threshold:
+                out[i, j] = np.inf
+            nearest = min(nearest, out[i, j])
+        if keep > 0 and nearest < np.inf:
+            count = _keep_best(best, count, nearest)
