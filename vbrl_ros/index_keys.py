@@ -307,11 +307,12 @@ def yaw_bounds(yaw_keys: np.ndarray, rows: np.ndarray, query: np.ndarray, shifts
 
 
 @njit(cache=True, nogil=True)
-def smallest_per_row(values: np.ndarray, out: np.ndarray) -> None:
-    """out[i] = the positions, ascending, of the m = out.shape[1] smallest of values[i].
+def smallest_per_row(values: np.ndarray, out: np.ndarray, out_values: np.ndarray) -> None:
+    """out[i] = the positions, ascending, of the m = out.shape[1] smallest of values[i];
+    out_values[i] = the values there.
 
-    Ties go to the lower position. One insertion pass per row: at m = 4 of 24
-    shifts ~20x faster than numpy's per-row stable argsort.
+    Ties go to the lower position (so m = 1 is argmin). One insertion pass per
+    row: at m = 4 of 24 shifts ~20x faster than numpy's per-row stable argsort.
     """
     m = out.shape[1]
     best = np.empty(m, values.dtype)
@@ -337,3 +338,33 @@ def smallest_per_row(values: np.ndarray, out: np.ndarray) -> None:
                 out[i, pos] = out[i, pos - 1]
                 pos -= 1
             out[i, pos] = position
+        for j in range(count):
+            out_values[i, j] = values[i, out[i, j]]
+
+
+@njit(cache=True, nogil=True)
+def lowest_rows(values: np.ndarray, count: int) -> np.ndarray:
+    """Ascending positions of the ``count`` rows of ``values`` (>= 0) whose smallest entry is lowest.
+
+    Ties go to the lower position. Compiled because numpy's row minimum over a
+    short axis alone took ~0.1 ms for 1024 x 24 bounds.
+    """
+    n = values.shape[0]
+    if n <= count:
+        return np.arange(n)
+    minima = row_minima(values)
+    # non-negative float32 sort as their bit patterns do; the position breaks ties
+    codes = (minima.view(np.int32).astype(np.int64) << 32) | np.arange(n)
+    return np.sort(np.partition(codes, count - 1)[:count] & 0xFFFFFFFF)
+
+
+@njit(cache=True, nogil=True)
+def row_minima(values: np.ndarray) -> np.ndarray:
+    """values.min(axis=1) as float32, without numpy's slow reduction over a short axis."""
+    minima = np.empty(values.shape[0], np.float32)
+    for i in range(values.shape[0]):
+        smallest = values[i, 0]
+        for k in range(1, values.shape[1]):
+            smallest = min(smallest, values[i, k])
+        minima[i] = smallest
+    return minima
