@@ -426,8 +426,32 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def _raise_interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt
+class _Interrupts:
+    """SIGINT/SIGTERM stop the replay at the next message boundary instead of raising mid-call.
+
+    A KeyboardInterrupt raised inside a DDS call (a publish holding rclpy's
+    handle lock) can leave teardown waiting on that lock, so the first signal
+    only sets ``stop`` — from a helper thread, since ``Event.set`` in a handler
+    can deadlock on the lock the interrupted main thread holds. A second
+    Ctrl-C interrupts at once, as usual.
+    """
+
+    def __init__(self, stop: threading.Event) -> None:
+        self.stop, self.received, self._previous = stop, False, {}
+
+    def __enter__(self) -> _Interrupts:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {sig: signal.signal(sig, self._handle) for sig in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        self.received = True
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        threading.Thread(target=self.stop.set, daemon=True).start()
+
+    def __exit__(self, *exc: Any) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -438,18 +462,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"replaying {player.total} messages from {args.bag} ({', '.join(player.topics)}) "
               f"at {args.rate:g}x", file=sys.stderr, flush=True)
         # SIGTERM (e.g. a test harness or launch stopping us) takes the same orderly path as Ctrl-C.
-        in_main = threading.current_thread() is threading.main_thread()
-        previous = signal.signal(signal.SIGTERM, _raise_interrupt) if in_main else None
-        try:
-            player.play(delay=args.delay, wait_for_subscribers=args.wait_for_subscribers,
-                        wait_topics=args.wait_topics, wait_timeout=args.wait_timeout,
-                        progress=False if args.quiet else None)
-        except KeyboardInterrupt:
+        with _Interrupts(threading.Event()) as interrupts:
+            try:
+                player.play(delay=args.delay, wait_for_subscribers=args.wait_for_subscribers,
+                            wait_topics=args.wait_topics, wait_timeout=args.wait_timeout,
+                            progress=False if args.quiet else None, stop=interrupts.stop)
+            except KeyboardInterrupt:  # a second Ctrl-C
+                interrupts.received = True
+        if interrupts.received:
             print(f"interrupted: {player.stats.summary(args.rate)}", flush=True)
             return 130
-        finally:
-            if in_main:
-                signal.signal(signal.SIGTERM, previous)
         print(player.stats.summary(args.rate), flush=True)
     return 0
 
