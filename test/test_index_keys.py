@@ -94,24 +94,3 @@ def test_yaw_bounds_are_the_shifted_l1_distances_at_the_given_shifts():
         expected = [[np.abs(np.roll(query, -k, axis=0) - keys[row]).sum() for k in ks]
                     for row, ks in zip(rows, shifts)]
         np.testing.assert_allclose(out, expected, rtol=1e-5)
-
-
-def test_smallest_per_row_are_the_stable_argsort_positions_ascending():
-    rng = np.random.default_rng(8)
-    values = rng.integers(0, 6, (200, 24)).astype(np.float32)  # many ties: lower position wins
-    for m in (1, 4, 24):
-        out = np.empty((200, m), np.int64)
-        picked = np.empty((200, m), np.float32)
-        kk.smallest_per_row(values, out, picked)
-        expected = np.sort(np.argsort(values, axis=1, kind="stable")[:, :m], axis=1)
-        np.testing.assert_array_equal(out, expected)
-        np.testing.assert_array_equal(picked, np.take_along_axis(values, expected, 1))
-    np.testing.assert_array_equal(kk.row_minima(values), values.min(axis=1))
-
-
-def test_lowest_rows_are_the_rows_with_the_smallest_minimum_lower_first_on_ties():
-    rng = np.random.default_rng(9)
-    values = rng.integers(0, 20, (500, 7)).astype(np.float32)
-    for count in (1, 77, 499, 500, 600):
-        expected = np.sort(np.argsort(values.min(axis=1), kind="stable")[:count])
-        np.testing.assert_array_equal(kk.lowest_rows(values, count), expected)

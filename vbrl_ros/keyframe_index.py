@@ -68,6 +68,7 @@ from typing import Any
 import numpy as np
 
 from vbrl_ros import index_keys as kk
+from vbrl_ros import row_selection as rs
 from vbrl_ros.index_parameters import checked_int, search_parameters
 from vbrl_ros import weighted_l1_kernels as wk
 from vbrl_ros.keyframe_index_state import (  # noqa: F401 - re-exported
@@ -105,20 +106,6 @@ class SearchResult:
     distances: np.ndarray  # float64
     shifts: np.ndarray  # int64
     yaws: np.ndarray  # float64
-
-
-def _smallest(values: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """(positions, values) of each row's m smallest, positions ascending (ties: lower)."""
-    positions = np.empty((len(values), m), np.int64)
-    picked = np.empty((len(values), m), values.dtype)
-    kk.smallest_per_row(values, positions, picked)
-    return positions, picked
-
-
-def _gathered(values: np.ndarray, positions: np.ndarray) -> np.ndarray:
-    """values[i, positions[i, j]] (numpy's take_along_axis is ~5x slower at this size)."""
-    flat = positions + values.shape[1] * np.arange(len(values))[:, None]
-    return np.ascontiguousarray(values).ravel()[flat]
 
 
 def grown(array: np.ndarray, needed: int) -> np.ndarray:
@@ -391,11 +378,11 @@ class KeyframeIndex:
         else:  # stage 2: yaw-key bounds
             keep = max(self.rerank, top_k)
             rows, bounded, bounds = self._yaw_bounds(rows, yaw_key[0], keep)
-            chosen = kk.lowest_rows(bounds, keep)  # ties: lower row, as rows ascend
+            chosen = rs.lowest_rows(bounds, keep)  # ties: lower row, as rows ascend
             rows, bounded, bounds = rows[chosen], bounded[chosen], bounds[chosen]
-            best, _ = _smallest(bounds, self.yaw_shifts)
-            tried = _gathered(bounded, best)  # ascending, as bounded is
-            promise = kk.row_minima(bounds)
+            best, _ = rs.smallest(bounds, self.yaw_shifts)
+            tried = rs.gathered(bounded, best)  # ascending, as bounded is
+            promise = rs.row_minima(bounds)
         # stage 3: exact distances at the shifts tried, most promising rows first, dropping
         # a row as soon as it cannot be among the `wanted` nearest (stage 4 takes those)
         completing = self.complete_rows > 0 and self.yaw_shifts < self.sectors
@@ -403,8 +390,8 @@ class KeyframeIndex:
         order = np.argsort(promise, kind="stable")
         rows, tried = rows[order], tried[order]
         at = self._at_shifts(q, rows, tried, keep=wanted)
-        best, distances = _smallest(at, 1)  # tried shifts ascend, so the smallest k on ties
-        distances, shifts = distances[:, 0], _gathered(tried, best)[:, 0]
+        best, distances = rs.smallest(at, 1)  # tried shifts ascend, so the smallest k on ties
+        distances, shifts = distances[:, 0], rs.gathered(tried, best)[:, 0]
         kept = np.isfinite(distances)
         rows, distances, shifts = rows[kept], distances[kept], shifts[kept]
         if completing:
@@ -459,9 +446,9 @@ class KeyframeIndex:
         coarse = np.empty((len(rows), sectors), np.float32)
         kk.yaw_bounds(self._yaw_coarse, rows, np.ascontiguousarray(query_yaw[:, :split]), every,
                       coarse)
-        screened = kk.lowest_rows(coarse, _SCREEN_PER_KEPT * keep)
+        screened = rs.lowest_rows(coarse, _SCREEN_PER_KEPT * keep)
         rows, coarse = rows[screened], coarse[screened]
-        shifts, picked = _smallest(coarse, self.bound_shifts)
+        shifts, picked = rs.smallest(coarse, self.bound_shifts)
         rest = np.empty(shifts.shape, np.float32)
         kk.yaw_bounds(self._yaw_fine, rows, fine_query, shifts, rest)
         return rows, shifts, picked + rest
