@@ -306,7 +306,7 @@ def test_state_round_trip(tmp_path, storage):
     legacy = KeyframeIndex.from_state(first)
     assert legacy.complete_rows == KeyframeIndex(weights, sectors=12).complete_rows == 8
     assert (legacy.refine_dim, legacy.scan_pool) == (40, 4)  # all 40 columns, 4x the candidates
-    assert legacy.bound_shifts == 4
+    assert legacy.bound_shifts == 12  # every shift
     with pytest.raises(ValueError, match="lacks"):
         KeyframeIndex.from_state({"index_format": np.array("vbrl_ros.keyframe_index")})
     with pytest.raises(ValueError, match="version"):
@@ -347,7 +347,7 @@ def test_rejects_bad_input():
     # the shifts tried exactly are chosen among the bounded ones: at least yaw_shifts of them
     with pytest.raises(ValueError, match=r"bound_shifts must be an integer in \[3, 4\]"):
         KeyframeIndex(np.ones(24, np.float32), sectors=4, yaw_shifts=3, bound_shifts=2)
-    assert KeyframeIndex(np.ones(48, np.float32), sectors=8, yaw_shifts=6).bound_shifts == 6
+    assert KeyframeIndex(np.ones(48, np.float32), sectors=8, yaw_shifts=6).bound_shifts == 8
     with pytest.raises(ValueError, match="yaw_dim"):
         KeyframeIndex(np.ones(24, np.float32), yaw_dim=3)  # one sector: no yaw key
 

@@ -20,9 +20,6 @@ DEFAULT_KEY_DIM = 256
 # keyframes, as a 512-entry scan would, where the 256-entry key alone managed 26
 DEFAULT_REFINE_DIM = 512
 DEFAULT_SCAN_POOL = 4
-# the whole yaw bound at each candidate's 4 best shifts by its first quarter, not at
-# all 24: the same or better agreement with brute force (see KeyframeIndex._yaw_bounds)
-DEFAULT_BOUND_SHIFTS = 4
 
 
 def default_parameters(width: int, sectors: int) -> dict[str, int]:
@@ -43,7 +40,7 @@ def default_parameters(width: int, sectors: int) -> dict[str, int]:
         "rerank": 128 if polar else 512,
         "yaw_dim": min(width, 32) if polar else 0,
         "yaw_shifts": min(sectors, 2),
-        "bound_shifts": min(sectors, DEFAULT_BOUND_SHIFTS),
+        "bound_shifts": sectors,  # every shift: fewer lost real matches (KeyframeIndex._yaw_bounds)
         "complete_rows": 8 if polar else 0,
         "refine_dim": _default_refine_dim(width, key_dim),
         "scan_pool": DEFAULT_SCAN_POOL,
@@ -64,13 +61,11 @@ def search_parameters(width: int, sectors: int, **given: int | None) -> dict[str
               "complete_rows": (0, _MAX_INT),
               "refine_dim": (0, min(width, MAX_KEY_DIM)), "scan_pool": (1, 64)}
     checked = {}
-    for name in limits:  # key_dim and yaw_shifts before the defaults that depend on them
+    for name in limits:  # key_dim and yaw_shifts before what depends on them
         if name == "refine_dim" and given.get(name) is None:
             chosen[name] = _default_refine_dim(width, checked["key_dim"])
-        if name == "bound_shifts":
-            if given.get(name) is None:
-                chosen[name] = max(chosen[name], checked["yaw_shifts"])
-            limits[name] = (checked["yaw_shifts"], sectors)  # the tried shifts are among these
+        if name == "bound_shifts":  # the shifts tried exactly are among these
+            limits[name] = (checked["yaw_shifts"], sectors)
         checked[name] = checked_int(name, chosen[name], *limits[name])
     return checked
 
