@@ -115,7 +115,8 @@ def spin_until(node: Any, predicate: Callable[[], bool], timeout: float, *, exec
 
 
 class MessageCollector:
-    """Subscribes to several topics at once and keeps every message with its (monotonic) arrival time.
+    """Subscribes to several topics at once and keeps every message with its (monotonic) arrival time
+    and the publisher's send time (``sent``: DDS source timestamp, s).
 
     Subscribe before the publisher starts: volatile publishers do not resend
     what a late subscriber missed. The default QoS is reliable with a deep
@@ -131,6 +132,9 @@ class MessageCollector:
         self.node = node
         self.messages: dict[str, list[Any]] = {topic: [] for topic in topics}
         self.arrivals: dict[str, list[float]] = {topic: [] for topic in topics}
+        # when the publisher sent each message: unlike arrivals, not bunched by late discovery or a
+        # busy test thread, so it is what a pacing test should read
+        self.sent: dict[str, list[float]] = {topic: [] for topic in topics}
         qos = QoSProfile(depth=1000) if qos is None else qos
         self._subscriptions = [node.create_subscription(msg_type, topic, self._callback(topic), qos)
                                for topic, msg_type in topics.items()]
@@ -138,8 +142,9 @@ class MessageCollector:
         self.executor.add_node(node)
 
     def _callback(self, topic: str) -> Callable[[Any], None]:
-        def store(msg: Any) -> None:
+        def store(msg: Any, info: Any) -> None:
             self.arrivals[topic].append(time.monotonic())
+            self.sent[topic].append(info["source_timestamp"] * 1e-9)
             self.messages[topic].append(msg)
 
         return store
