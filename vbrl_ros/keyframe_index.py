@@ -27,8 +27,8 @@ descriptor the index keeps small keys and searches in (up to) four stages:
    sensor, so the invariant key is coarse. A per-sector yaw key — ``yaw_dim``
    signed group sums per sector, (S, yaw_dim) float32 — bounds every D_k from
    below too. Its first quarter of groups, compared under all S shifts, screens
-   the candidates and picks each one's ``bound_shifts`` most promising shifts;
-   the whole key at those keeps the ``rerank`` candidates with the smallest
+   the candidates and picks each one's ``bound_shifts`` most promising shifts
+   (default: all of them); the whole key at those keeps the ``rerank`` candidates with the smallest
    bound and, for each, its ``yaw_shifts`` most promising shifts.
 3. **Exact re-rank**: D_k at those shifts, in float32, with the same compiled
    sums as :meth:`KeyframeIndex.exact_search` (:mod:`vbrl_ros.weighted_l1_kernels`),
@@ -128,8 +128,8 @@ class KeyframeIndex:
     ``candidates`` the scan passes to it. ``candidates``:
     keyframes kept by the key scan. ``rerank`` (S > 1; S = 1 re-ranks all
     candidates): keyframes kept by the yaw keys and scored exactly at their
-    ``yaw_shifts`` best shifts, chosen among the ``bound_shifts`` best by the
-    yaw key's first quarter. ``complete_rows`` (S > 1): the nearest so many
+    ``yaw_shifts`` best shifts, chosen among the ``bound_shifts`` (default S)
+    best by the yaw key's first quarter. ``complete_rows`` (S > 1): the nearest so many
     (at least ``top_k``) are then scored at every shift. ``yaw_dim``: yaw-key groups per sector
     (S * yaw_dim float32 per keyframe; 0 when S = 1). ``yaw_refine``: refine the
     yaw of the returned keyframes by a parabola through D at k - 1, k, k + 1
