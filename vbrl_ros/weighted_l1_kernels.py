@@ -100,8 +100,9 @@ def min_over_shifts(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.nd
     ``store``: (n, S*R) float32, or the uint16 view of a float16 store (as every kernel here).
     """
     per_shift = np.empty(sectors, np.float32)
+    every_shift = np.arange(sectors)
     for i in range(len(rows)):
-        best = _nearest_row(store[rows[i]], q, w, sectors, np.inf, per_shift)  # never abandons
+        best = _nearest_row(store[rows[i]], q, w, sectors, np.inf, every_shift, per_shift)
         out_distance[i] = per_shift[best]
         out_shift[i] = best
 
@@ -120,28 +121,39 @@ def _keep_best(best: np.ndarray, count: int, value: np.float32) -> int:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _nearest_row(t: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int, threshold: float,
-                 per_shift: np.ndarray) -> int:
-    """Fill per_shift with D_k and return the best k; -1 if every D_k > ``threshold``.
+def _row_at_shifts(t: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int,
+                   shifts: np.ndarray, threshold: float, out: np.ndarray) -> None:
+    """out[j] = D_{shifts[j]}(q, t); +inf for a negative shift or one above ``threshold``.
 
-    A shift whose partial sum exceeds ``threshold`` is dropped (left +inf):
-    partial sums only grow, so it cannot end at or below it. The row is
-    abandoned once every shift is dropped. Shifts kept have the same sums as
-    every kernel here.
+    Sector-major, so each stored sector is read once for all the shifts; each
+    shift's sum still runs sector by sector, in the order every kernel here
+    uses. A shift whose partial sum exceeds ``threshold`` is dropped: partial
+    sums only grow, so it cannot end at or below it; the row stops once every
+    shift is dropped.
     """
     width = len(w)
-    per_shift[:] = 0.0
+    for j in range(len(shifts)):
+        out[j] = 0.0 if shifts[j] >= 0 else np.inf
     for s in range(sectors):
         alive = 0
-        for k in range(sectors):
-            if per_shift[k] <= threshold:
-                per_shift[k] += _sector_l1(q, ((s + k) % sectors) * width, t, s * width, w)
+        for j in range(len(shifts)):
+            k = shifts[j]
+            if k >= 0 and out[j] <= threshold:
+                out[j] += _sector_l1(q, ((s + k) % sectors) * width, t, s * width, w)
                 alive += 1
         if alive == 0:
-            return -1
-    for k in range(sectors):
-        if per_shift[k] > threshold:
-            per_shift[k] = np.inf
+            break
+    for j in range(len(shifts)):
+        if out[j] > threshold:
+            out[j] = np.inf
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _nearest_row(t: np.ndarray, q: np.ndarray, w: np.ndarray, sectors: int, threshold: float,
+                 every_shift: np.ndarray, per_shift: np.ndarray) -> int:
+    """Fill per_shift with D_k (``every_shift`` = 0..S-1) and return the best k; -1 if every
+    D_k > ``threshold`` (those are +inf, see :func:`_row_at_shifts`)."""
+    _row_at_shifts(t, q, w, sectors, every_shift, threshold, per_shift)
     best = _argmin_first(per_shift)
     return best if per_shift[best] <= threshold else -1
 
@@ -160,11 +172,13 @@ def nearest(store: np.ndarray, rows: np.ndarray, q: np.ndarray, w: np.ndarray, s
     shifts it completes have the same sums as every kernel here.
     """
     per_shift = np.empty(sectors, np.float32)
+    every_shift = np.arange(sectors)
     best = np.empty(top_k, np.float32)
     count = 0
     for i in range(len(rows)):
         threshold = best[top_k - 1] if count == top_k else np.inf
-        k = _nearest_row(store[rows[i]], q, w, sectors, min(threshold, row_limits[i]), per_shift)
+        k = _nearest_row(store[rows[i]], q, w, sectors, min(threshold, row_limits[i]),
+                         every_shift, per_shift)
         out_shift[i] = k
         out_distance[i] = per_shift[k] if k >= 0 else np.inf
         if k >= 0:
@@ -177,8 +191,7 @@ def at_shifts(store: np.ndarray, rows: np.ndarray, shifts: np.ndarray, q: np.nda
     """out[i, j] = D_{shifts[i, j]}(q, store[rows[i]]); a negative shift leaves +inf.
 
     Sector-major over a row, so each stored sector is read from memory once for
-    all of the row's shifts; each shift's sum still runs sector by sector, in
-    the order every kernel here uses.
+    all of the row's shifts (:func:`_row_at_shifts`).
 
     ``keep`` > 0: only the ``keep`` rows with the smallest distance (over their
     shifts) are wanted. Once ``keep`` rows are done, a shift is dropped (+inf)
@@ -186,27 +199,11 @@ def at_shifts(store: np.ndarray, rows: np.ndarray, shifts: np.ndarray, q: np.nda
     far: it cannot make its row one of them. Exact for the rows that are; pass
     the most promising rows first so the cut-off tightens early.
     """
-    width = len(w)
     best = np.empty(max(keep, 1), np.float32)
     count = 0
     for i in range(len(rows)):
         threshold = best[keep - 1] if keep > 0 and count == keep else np.inf
-        t = store[rows[i]]
-        for j in range(shifts.shape[1]):
-            out[i, j] = 0.0 if shifts[i, j] >= 0 else np.inf
-        for s in range(sectors):
-            alive = 0
-            for j in range(shifts.shape[1]):
-                k = shifts[i, j]
-                if k >= 0 and out[i, j] <= threshold:
-                    out[i, j] += _sector_l1(q, ((s + k) % sectors) * width, t, s * width, w)
-                    alive += 1
-            if alive == 0:
-                break
-        nearest = np.float32(np.inf)
-        for j in range(shifts.shape[1]):
-            if out[i, j] > threshold:
-                out[i, j] = np.inf
-            nearest = min(nearest, out[i, j])
+        _row_at_shifts(store[rows[i]], q, w, sectors, shifts[i], threshold, out[i])
+        nearest = out[i].min()
         if keep > 0 and nearest < np.inf:
             count = _keep_best(best, count, nearest)
