@@ -271,16 +271,22 @@ class KeyframeIndex:
         x = np.ascontiguousarray(descriptors, dtype=np.float32).reshape(-1, self.dimension)
         return self._codec.raw(x)[:2]
 
+    def keys_as_stored(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(candidate keys (n, key_dim) int8, yaw keys (n, S, yaw_dim) float32, refine keys
+        (n, refine_dim) int8) of compact descriptors (n, d), from one pass over them."""
+        x = np.ascontiguousarray(descriptors, dtype=np.float32).reshape(-1, self.dimension)
+        keys, yaw, refine = self._codec.raw(x)
+        return (self._codec.quantised(keys).astype(np.int8) - 8, yaw,
+                self._codec.refine_quantised(refine).astype(np.int8) - 8)
+
     def keys(self, descriptors: np.ndarray) -> np.ndarray:
         """Candidate keys (n, key_dim) or (key_dim,) of compact descriptors: int8 in [-7, 7]."""
         x = np.asarray(descriptors)
-        codes = self._codec.quantised(self.raw_keys(x)[0])
-        return (codes.astype(np.int8) - 8).reshape(*x.shape[:-1], self.key_dim)
+        return self.keys_as_stored(x)[0].reshape(*x.shape[:-1], self.key_dim)
 
     def refine_keys(self, descriptors: np.ndarray) -> np.ndarray:
         """Refine keys (n, refine_dim) of compact descriptors (n, d): int8 in [-7, 7]."""
-        x = np.ascontiguousarray(descriptors, dtype=np.float32).reshape(-1, self.dimension)
-        return self._codec.refine_quantised(self._codec.raw(x)[2]).astype(np.int8) - 8
+        return self.keys_as_stored(descriptors)[2]
 
     def stored_refine_keys(self) -> np.ndarray:
         """The stored refine keys (n, refine_dim), int8 in [-7, 7]."""
@@ -327,12 +333,9 @@ class KeyframeIndex:
                 self._descriptors[rows[0] : rows[-1] + 1] = chunk
             else:  # keys of the values as stored, so the bounds stay valid
                 wk.store_half(chunk, self._store()[rows[0] : rows[-1] + 1])
-            stored = self._store()[rows[0] : rows[-1] + 1]
-            keys, yaw, refine = self._codec.raw(stored)
-            self._refine_keys[rows[0] : rows[-1] + 1] = kk.packed(self._codec.refine_quantised(refine))
-            self._store_yaw_keys(rows[0], yaw)
-            self._key_blocks[rows // kk.BLOCK, :, rows % kk.BLOCK] = kk.packed(
-                self._codec.quantised(keys))
+            keys, yaw, refine = self._codec.raw(self._store()[rows[0] : rows[-1] + 1])
+            self._write_keys(rows, self._codec.quantised(keys), yaw,
+                             self._codec.refine_quantised(refine))
         self._size = n + m
         return np.arange(n, n + m, dtype=np.int64)
 
@@ -531,10 +534,14 @@ class KeyframeIndex:
         n = self._size
         return np.concatenate([self._yaw_coarse[:n], self._yaw_fine[:n]], axis=2)
 
-    def _store_yaw_keys(self, first: int, yaw: np.ndarray) -> None:
-        split = self._coarse_groups
-        self._yaw_coarse[first : first + len(yaw)] = yaw[:, :, :split]
-        self._yaw_fine[first : first + len(yaw)] = yaw[:, :, split:]
+    def _write_keys(self, rows: np.ndarray, key_codes: np.ndarray, yaw: np.ndarray,
+                    refine_codes: np.ndarray) -> None:
+        """Store the keys of consecutive ``rows`` (nibble codes: value + 8)."""
+        first, last, split = rows[0], rows[-1] + 1, self._coarse_groups
+        self._key_blocks[rows // kk.BLOCK, :, rows % kk.BLOCK] = kk.packed(key_codes)
+        self._refine_keys[first:last] = kk.packed(refine_codes)
+        self._yaw_coarse[first:last] = yaw[:, :, :split]
+        self._yaw_fine[first:last] = yaw[:, :, split:]
 
     def _adopt(self, descriptors: np.ndarray, keys: np.ndarray, yaw_keys: np.ndarray,
                refine_keys: np.ndarray) -> None:
@@ -543,11 +550,8 @@ class KeyframeIndex:
         self._size = 0
         self._reserve(n)
         self._descriptors[:n] = descriptors
-        self._store_yaw_keys(0, yaw_keys)
-        if self.refine_dim:
-            self._refine_keys[:n] = kk.packed((refine_keys + 8).astype(np.uint8))
-        rows = np.arange(n)
-        self._key_blocks[rows // kk.BLOCK, :, rows % kk.BLOCK] = kk.packed(
-            (keys + 8).astype(np.uint8))
+        if n:
+            self._write_keys(np.arange(n), (keys + 8).astype(np.uint8), yaw_keys,
+                             (refine_keys + 8).astype(np.uint8))
         self._size = n
 

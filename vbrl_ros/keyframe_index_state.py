@@ -79,8 +79,8 @@ def index_from_state(cls: type[KeyframeIndex], arrays: Mapping[str, np.ndarray],
         refine = np.empty((n, index.refine_dim), np.int8)
         for start in range(0, n, _REKEY_ROWS):
             chunk = descriptors[start : start + _REKEY_ROWS].astype(np.float32)
-            keys[start : start + len(chunk)] = index.keys(chunk)
-            refine[start : start + len(chunk)] = index.refine_keys(chunk)
+            keys[start : start + len(chunk)], _, refine[start : start + len(chunk)] = (
+                index.keys_as_stored(chunk))
     else:
         refine = get("refine_keys")
     if refine.shape != (n, index.refine_dim) or refine.dtype != np.int8:
@@ -93,10 +93,9 @@ def index_from_state(cls: type[KeyframeIndex], arrays: Mapping[str, np.ndarray],
         raise ValueError(f"yaw keys have shape {yaw.shape} {yaw.dtype}, "
                          f"expected ({n}, {index.sectors}, {index.yaw_dim}) float32")
     sample = np.unique(np.linspace(0, n - 1, min(n, _KEY_CHECK_ROWS)).astype(np.int64))
-    sampled = descriptors[sample].astype(np.float32)
-    if n and (not np.array_equal(index.keys(sampled), keys[sample])
-              or not np.array_equal(index.raw_keys(sampled)[1], yaw[sample])
-              or not np.array_equal(index.refine_keys(sampled), refine[sample])):
+    expected = index.keys_as_stored(descriptors[sample].astype(np.float32))
+    if n and not all(np.array_equal(computed, stored[sample])
+                     for computed, stored in zip(expected, (keys, yaw, refine))):
         raise ValueError("stored keys do not match the descriptors (other key parameters?)")
     index._adopt(descriptors, keys, yaw, refine)
     return index
