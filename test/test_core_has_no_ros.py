@@ -3,7 +3,7 @@
 import subprocess
 import sys
 
-CORE = ["config", "voxelization", "hog", "feature_kernel", "features", "solver", "scoring",
+CORE = ["config", "grids.kinds", "features.hog", "features.kernels", "features.featurizer", "solver", "scoring",
         "model", "database", "registration", "loop_closure", "scan_context", "training",
         "evaluation", "simulator"]
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
-from vbrl_ros.features import Featurizer
+from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.model import ModelFileError, VBRLModel, load_model
 
 CONFIG = VBRLConfig(grid=VoxelGridConfig(cells_xy=4))

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
-from vbrl_ros.features import Featurizer
+from vbrl_ros.features.featurizer import Featurizer
 
 BENCH_POINTS = 120_000
 

@@ -96,7 +96,7 @@ def polar_set(scans: list[tuple[np.ndarray, np.ndarray, int]], sectors: int = 24
     """
     from vbrl_ros.config import VBRLConfig, VoxelGridConfig
     from vbrl_ros.default_model import load_default_model
-    from vbrl_ros.features import Featurizer
+    from vbrl_ros.features.featurizer import Featurizer
 
     if model is not None:
         require_polar(model)

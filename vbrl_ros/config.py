@@ -38,7 +38,7 @@ class VoxelGridConfig:
     ``kind="polar"``: ``rings`` equal-width annuli over ``[0, max_range)`` x
     ``sectors`` equal angles over ``[0, 2π)``, starting at +x and counter-
     clockwise. A scan rotated about z by whole sectors permutes the sectors of
-    its descriptor (see :mod:`vbrl_ros.polar_grid`).
+    its descriptor (see :mod:`vbrl_ros.grids.polar`).
 
     Points outside the grid are dropped.
     """

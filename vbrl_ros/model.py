@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from vbrl_ros.config import VBRLConfig
-from vbrl_ros.features import Featurizer, FeatureLayout
+from vbrl_ros.features.featurizer import Featurizer, FeatureLayout
 from vbrl_ros.io.atomic import atomic_write
 from vbrl_ros.io.npz import one_line, read_npz
 from vbrl_ros.scoring import WeightedL1Scorer, importance_weights, row_weights

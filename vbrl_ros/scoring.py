@@ -80,7 +80,7 @@ class WeightedL1Scorer:
     weight (0 keeps every row with a non-zero weight, which is exact).
 
     ``sector_rows`` (S, R) int64 (a polar grid's
-    :attr:`~vbrl_ros.features.FeatureLayout.sector_rows`): row ``sector_rows[s, r]``
+    :attr:`~vbrl_ros.features.featurizer.FeatureLayout.sector_rows`): row ``sector_rows[s, r]``
     is column r of sector s, and weights must be equal across sectors in a
     column (tied). A column is kept or pruned in every sector at once, and
     ``active_rows = sector_rows[:, active_columns].ravel()``, so a compact

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
-from vbrl_ros.features import Featurizer
+from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.training.cv import cross_validate, format_cv_table, place_folds, plot_cv
-from vbrl_ros.training.threshold import recommend_threshold
 from vbrl_ros.training.fit import fit_model
+from vbrl_ros.training.threshold import recommend_threshold
 
 SMALL = VBRLConfig(grid=VoxelGridConfig(extent_xy=20.0, cells_xy=2, z_edges=(-2.0, 0.0, 3.0)))
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
-from vbrl_ros.features import Featurizer
+from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.training.fit import fit_model, standardization
 from vbrl_ros.training.streaming import RawMoments, fit_from_moments
 

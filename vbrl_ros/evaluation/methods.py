@@ -25,7 +25,7 @@ from tqdm import tqdm
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.datasets import open_source
 from vbrl_ros.evaluation.retrieval import DistancesFn
-from vbrl_ros.features import Featurizer
+from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.keyframe_index import KeyframeIndex
 from vbrl_ros.model import VBRLModel
 from vbrl_ros.scan_context import ScanContextConfig, ScanContextDatabase, scan_context

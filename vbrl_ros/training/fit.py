@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from vbrl_ros.config import VBRLConfig
-from vbrl_ros.features import FeatureLayout, Featurizer
+from vbrl_ros.features.featurizer import FeatureLayout, Featurizer
 from vbrl_ros.model import VBRLModel
 from vbrl_ros.solver import RowGroups, SolverResult, solve_vbrl
 

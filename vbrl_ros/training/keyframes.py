@@ -13,7 +13,7 @@ from tqdm import tqdm
 
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.datasets import ScanSource
-from vbrl_ros.features import Featurizer
+from vbrl_ros.features.featurizer import Featurizer
 
 
 def select_by_distance(poses: np.ndarray, spacing: float) -> np.ndarray:

@@ -19,7 +19,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from vbrl_ros.features import MODALITIES
+from vbrl_ros.features.featurizer import MODALITIES
 from vbrl_ros.model import VBRLModel
 from vbrl_ros.training.ablations import sibling_path
 from vbrl_ros.training.report import layer_names, layer_shares
@@ -61,7 +61,7 @@ def plot_modalities(model: VBRLModel, path: str | Path, dpi: int = 120) -> Path:
 def plot_voxels(model: VBRLModel, path: str | Path, dpi: int = 120) -> Path:
     """Voxel importance (paper Fig. 4b): one top-down map per layer, sensor at the centre.
 
-    Voxel j = layer·c² + iy·c + ix (see voxelization.voxel_centers), so a
+    Voxel j = layer·c² + iy·c + ix (see CartesianVoxelGrid.voxel_centers), so a
     reshape gives [layer, y, x]; ``origin="lower"`` puts +y up and +x right.
     """
     grid = model.config.grid

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from vbrl_ros.features import MODALITIES
+from vbrl_ros.features.featurizer import MODALITIES
+from vbrl_ros.grids.cartesian import CartesianVoxelGrid
 from vbrl_ros.model import VBRLModel
-from vbrl_ros.voxelization import CartesianVoxelGrid
 
 LAYER_NAMES = {3: ("bottom", "middle", "top")}
 

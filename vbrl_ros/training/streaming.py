@@ -42,7 +42,7 @@ from tqdm import tqdm
 
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.datasets import open_source
-from vbrl_ros.features import Featurizer
+from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.model import VBRLModel
 from vbrl_ros.solver import GramAccumulator, GramStats, solve_vbrl
 from vbrl_ros.training.fit import MIN_FEATURE_SCALE, TrainingResult, pool_tied, row_groups

@@ -31,7 +31,7 @@ sign tests against the bins' boundary directions walk from the guess to the
 one bin that has the point on or left of its first boundary and right of
 the next. Any start reaches that bin, so the result depends only on the
 sign tests: the compiled kernel
-(:func:`~vbrl_ros.feature_kernel.accumulate_polar_voxels`), which starts from
+(:func:`~vbrl_ros.features.kernels.accumulate_polar_voxels`), which starts from
 the previous point's bin (scans come in azimuth order), and the numpy path
 below agree bit for bit.
 """
@@ -41,8 +41,8 @@ from __future__ import annotations
 import numpy as np
 
 from vbrl_ros.config import VoxelGridConfig
-from vbrl_ros.feature_kernel import ATAN_COEFFICIENTS
-from vbrl_ros.voxelization import LayeredGrid, VoxelAssignment
+from vbrl_ros.features.kernels import ATAN_COEFFICIENTS
+from vbrl_ros.grids.base import LayeredGrid, VoxelAssignment
 
 TWO_PI = 2.0 * np.pi
 

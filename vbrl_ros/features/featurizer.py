@@ -6,14 +6,14 @@ XZ-HOG, YZ-HOG and finally subvoxel occupancy; inside a modality, voxel-major.
 :class:`FeatureLayout` says which voxel and modality each row belongs to —
 the groups of the structured-sparsity norms and of the score.
 
-On the polar grid (:mod:`vbrl_ros.polar_grid`) the layout also says which
+On the polar grid (:mod:`vbrl_ros.grids.polar`) the layout also says which
 rows are the same feature in different sectors (``sector_rows``), and the
 weights are tied across sectors: a sparsity group and an importance wV
 belong to a (layer, ring) column of voxels (``weight_layout``), so a scan
 compared under a circular sector shift is weighed the same in every sector.
 
 The hot path (:meth:`Featurizer.modalities`) reads the points once in a
-compiled kernel (:mod:`vbrl_ros.feature_kernel`); :meth:`Featurizer.modalities_numpy`
+compiled kernel (:mod:`vbrl_ros.features.kernels`); :meth:`Featurizer.modalities_numpy`
 computes the same with a handful of ``np.bincount`` calls and is the
 reference the tests hold the kernel to. Neither loops over voxels in Python.
 """
@@ -26,9 +26,9 @@ from functools import cached_property
 import numpy as np
 
 from vbrl_ros.config import VBRLConfig
-from vbrl_ros.feature_kernel import accumulate_polar_voxels, accumulate_voxels
-from vbrl_ros.hog import hog_batch
-from vbrl_ros.voxelization import make_grid
+from vbrl_ros.features.hog import hog_batch
+from vbrl_ros.features.kernels import accumulate_polar_voxels, accumulate_voxels
+from vbrl_ros.grids.kinds import make_grid
 
 MODALITIES: tuple[str, ...] = ("covariance", "hog_xy", "hog_xz", "hog_yz", "occupancy")
 COVARIANCE_ENTRIES = 6  # xx, yy, zz, xy, xz, yz

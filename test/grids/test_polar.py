@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 
 from vbrl_ros.config import FeatureConfig, VBRLConfig, VoxelGridConfig
-from vbrl_ros.features import Featurizer
-from vbrl_ros.polar_grid import PolarVoxelGrid, approximate_azimuth
-from vbrl_ros.voxelization import CartesianVoxelGrid, make_grid
+from vbrl_ros.features.featurizer import Featurizer
+from vbrl_ros.grids.cartesian import CartesianVoxelGrid
+from vbrl_ros.grids.kinds import make_grid
+from vbrl_ros.grids.polar import PolarVoxelGrid, approximate_azimuth
 
 # ring width 5 m, sector 45 degrees, layers z in [-2, 0) and [0, 4)
 GRID = VoxelGridConfig(kind="polar", rings=4, sectors=8, max_range=20.0, z_edges=(-2.0, 0.0, 4.0))

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from vbrl_ros.config import FeatureConfig, VBRLConfig, VoxelGridConfig
-from vbrl_ros.features import Featurizer
+from vbrl_ros.features.featurizer import Featurizer
 
 CONFIGS = [
     VBRLConfig(),

@@ -10,7 +10,7 @@ test checks the two agree. ``nogil``: the node's worker thread featurizes
 while rclpy's executor keeps receiving.
 
 :func:`accumulate_polar_voxels` is the same pass on the polar grid of
-:mod:`vbrl_ros.polar_grid` (voxel-local coordinates and sub-cells).
+:mod:`vbrl_ros.grids.polar` (voxel-local coordinates and sub-cells).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit
 
 #: Odd polynomial for atan(t), t in [0, 1], error < 1.2e-5 rad (Abramowitz & Stegun 4.4.49).
-#: Here and not in polar_grid: numba's cache keys on this file, so the kernel
+#: Here and not in grids/polar.py: numba's cache keys on this file, so the kernel
 #: recompiles when they change.
 ATAN_COEFFICIENTS = (0.9998660, -0.3302995, 0.1801410, -0.0851330, 0.0208351)
 _C1, _C3, _C5, _C7, _C9 = ATAN_COEFFICIENTS
@@ -109,7 +109,7 @@ def accumulate_voxels(
 
 @njit(cache=True, nogil=True)
 def _approximate_azimuth(x: float, y: float) -> float:
-    """polar_grid.approximate_azimuth for one point, same operations in the same order."""
+    """grids.polar.approximate_azimuth for one point, same operations in the same order."""
     ax, ay = abs(x), abs(y)
     t = min(ax, ay) / max(ax, ay)
     t2 = t * t
@@ -175,7 +175,7 @@ def accumulate_polar_voxels(
                 layer += 1
         sz = (z * z_slope[layer] + z_intercept[layer]) * size
         # The angular bin is the unique b with the point on or left of boundary b and right
-        # of boundary b+1 (see polar_grid); walking from ANY start reaches it. Scans come in
+        # of boundary b+1 (see grids/polar.py); walking from ANY start reaches it. Scans come in
         # azimuth order, so the previous point's bin is usually right: two sign tests
         # instead of the arctangent guess.
         b = previous_bin

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from vbrl_ros.hog import hog_batch, hog_batch_numpy
+from vbrl_ros.features.hog import hog_batch, hog_batch_numpy
 
 IMPLEMENTATIONS = [hog_batch, hog_batch_numpy]
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from vbrl_ros.config import VoxelGridConfig
-from vbrl_ros.voxelization import CartesianVoxelGrid
+from vbrl_ros.grids.cartesian import CartesianVoxelGrid
 
 GRID = VoxelGridConfig(extent_xy=10.0, cells_xy=4, z_edges=(-2.0, 0.0, 1.0, 5.0))
 
@@ -63,7 +63,7 @@ def test_rejects_bad_shapes_and_subdivisions():
 
 
 def test_each_grid_refuses_the_other_kind_of_config():
-    from vbrl_ros.polar_grid import PolarVoxelGrid
+    from vbrl_ros.grids.polar import PolarVoxelGrid
 
     with pytest.raises(ValueError, match="CartesianVoxelGrid needs a cartesian grid config"):
         CartesianVoxelGrid(VoxelGridConfig(kind="polar"))

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from vbrl_ros.config import FeatureConfig, VBRLConfig, VoxelGridConfig
-from vbrl_ros.features import MODALITIES, Featurizer
+from vbrl_ros.features.featurizer import MODALITIES, Featurizer
 
 CONFIG = VBRLConfig(
     grid=VoxelGridConfig(extent_xy=8.0, cells_xy=4, z_edges=(-2.0, 0.0, 2.0)),
