@@ -9,9 +9,9 @@ import pytest
 
 from vbrl_ros import bench_descriptors as bd
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
-from vbrl_ros.default_model import load_default_model
 from vbrl_ros.features.featurizer import Featurizer
-from vbrl_ros.model import VBRLModel
+from vbrl_ros.model.builtin import load_default_model
+from vbrl_ros.model.model_file import VBRLModel
 
 POLAR = VBRLConfig(grid=VoxelGridConfig(kind="polar", rings=3, sectors=6, max_range=20.0))
 

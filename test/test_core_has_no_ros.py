@@ -3,8 +3,8 @@
 import subprocess
 import sys
 
-CORE = ["config", "grids.kinds", "features.hog", "features.kernels", "features.featurizer", "solver", "scoring",
-        "model", "database", "registration", "loop_closure", "scan_context", "training",
+CORE = ["config", "grids.kinds", "features.hog", "features.kernels", "features.featurizer", "model.solver", "model.scoring",
+        "model.model_file", "model.builtin", "database", "registration", "loop_closure", "scan_context", "training",
         "evaluation", "simulator"]
 
 

@@ -17,7 +17,7 @@ from vbrl_ros.database import (
     DatabaseFileError,
     KeyframeDatabase,
 )
-from vbrl_ros.scoring import WeightedL1Scorer
+from vbrl_ros.model.scoring import WeightedL1Scorer
 
 D = 40  # full descriptor length of the toy model
 

@@ -10,8 +10,8 @@ import pytest
 from vbrl_ros import bench_descriptors as bd
 from vbrl_ros.index_bench import winter_comparison
 from vbrl_ros.keyframe_index import INDEX_FORMAT_VERSION, KeyframeIndex
-from vbrl_ros.scoring import WeightedL1Scorer
-from vbrl_ros.weighted_l1_kernels import min_over_shifts
+from vbrl_ros.model.distance_kernels import min_over_shifts
+from vbrl_ros.model.scoring import WeightedL1Scorer
 
 
 def _clustered(n: int, d: int, clusters: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -148,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
     polar_model = None
     if args.polar_model is not None:  # checked before the long first section
         from vbrl_ros.bench_descriptors import require_polar
-        from vbrl_ros.model import load_model
+        from vbrl_ros.model.model_file import load_model
 
         polar_model = load_model(args.polar_model)
         require_polar(polar_model, f"{args.polar_model}: --polar-model")

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from vbrl_ros.scoring import WeightedL1Scorer, row_weights
+from vbrl_ros.model.scoring import WeightedL1Scorer, row_weights
 
 SESSIONS = (("summer_clear", 1, 0.0), ("winter_snow", 2, 1.5))  # scenario, seed, offset (m)
 
@@ -75,7 +75,7 @@ def simulated_scans(blocks: int = 1, loops: int = 1, beams: int = 32, columns: i
 
 def cartesian_set(scans: list[tuple[np.ndarray, np.ndarray, int]], prune: float = 0.0) -> DescriptorSet:
     """The default model's compact descriptors of ``scans``."""
-    from vbrl_ros.default_model import load_default_model
+    from vbrl_ros.model.builtin import load_default_model
 
     model = load_default_model()
     scorer, featurizer = model.scorer(prune), model.featurizer()
@@ -89,14 +89,14 @@ def polar_set(scans: list[tuple[np.ndarray, np.ndarray, int]], sectors: int = 24
               prune: float = 0.0) -> DescriptorSet:
     """Polar-grid compact descriptors; the winter session is rotated by random yaws first.
 
-    ``model``: a trained polar :class:`~vbrl_ros.model.VBRLModel` whose grid,
+    ``model``: a trained polar :class:`~vbrl_ros.model.model_file.VBRLModel` whose grid,
     standardisation and weights (pruned by ``prune``, as in
-    :meth:`~vbrl_ros.model.VBRLModel.scorer`) are used instead of the stand-in
+    :meth:`~vbrl_ros.model.model_file.VBRLModel.scorer`) are used instead of the stand-in
     described in the module docstring.
     """
     from vbrl_ros.config import VBRLConfig, VoxelGridConfig
-    from vbrl_ros.default_model import load_default_model
     from vbrl_ros.features.featurizer import Featurizer
+    from vbrl_ros.model.builtin import load_default_model
 
     if model is not None:
         require_polar(model)

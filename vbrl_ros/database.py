@@ -15,7 +15,7 @@ amortised doubling, so :meth:`KeyframeDatabase.add` is O(1) amortised besides
 the index's O(d) keys; clouds live in one concatenated ``(P, 3)`` float32
 array plus ``offsets`` (keyframe ``i`` owns ``points[offsets[i]:offsets[i + 1]]``).
 
-Distances are Eq. 4 (:class:`~vbrl_ros.scoring.WeightedL1Scorer`):
+Distances are Eq. 4 (:class:`~vbrl_ros.model.scoring.WeightedL1Scorer`):
 **lower = more similar**.
 
 On disk: one versioned ``.npz`` (``format="vbrl_ros.keyframes"``,
@@ -39,7 +39,7 @@ import numpy as np
 from vbrl_ros.io.atomic import atomic_write
 from vbrl_ros.io.npz import one_line, read_npz
 from vbrl_ros.keyframe_index import KeyframeIndex, grown
-from vbrl_ros.scoring import WeightedL1Scorer
+from vbrl_ros.model.scoring import WeightedL1Scorer
 
 DATABASE_FORMAT = "vbrl_ros.keyframes"
 DATABASE_FORMAT_VERSION = 2

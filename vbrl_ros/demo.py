@@ -18,8 +18,9 @@ import time
 from pathlib import Path
 
 from vbrl_ros.config import VBRLConfig
-from vbrl_ros.default_model import DEFAULT_MODEL_PATH, SimulatedTrainingSpec, build_default_model
-from vbrl_ros.default_model import simulated_training_data
+from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
+from vbrl_ros.training.builtin_model import SimulatedTrainingSpec, build_default_model
+from vbrl_ros.training.builtin_model import simulated_training_data
 from vbrl_ros.training.fit import fit_model
 from vbrl_ros.training.report import importance_report
 from vbrl_ros.training.threshold import recommend_threshold

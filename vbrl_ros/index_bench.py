@@ -40,7 +40,7 @@ import numpy as np
 from vbrl_ros import bench_descriptors as bd
 from vbrl_ros.database import KeyframeDatabase
 from vbrl_ros.keyframe_index import KeyframeIndex
-from vbrl_ros.scoring import WeightedL1Scorer
+from vbrl_ros.model.scoring import WeightedL1Scorer
 
 DEFAULT_SIZES = (1_000, 10_000, 100_000)
 STORAGES = ("float32", "float16")
@@ -237,7 +237,7 @@ def winter_comparison(data: bd.DescriptorSet, index: KeyframeIndex,
 
 def _brute_force(index: KeyframeIndex, rng: np.random.Generator) -> dict[str, Any]:
     """The plain linear scan over every keyframe and shift (what the index replaces)."""
-    from vbrl_ros.weighted_l1_kernels import min_over_shifts
+    from vbrl_ros.model.distance_kernels import min_over_shifts
 
     n = len(index)
     rows = np.arange(min(n, _BRUTE_FORCE_ROWS), dtype=np.int64)

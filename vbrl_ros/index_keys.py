@@ -31,7 +31,7 @@ import heapq
 import numpy as np
 from numba import njit
 
-from vbrl_ros.weighted_l1_kernels import as_float32
+from vbrl_ros.model.distance_kernels import as_float32
 
 BLOCK = 128  # keyframes per key block
 MAX_KEY_DIM = 1024  # uint16 sums of nibble differences stay exact up to 4369 entries

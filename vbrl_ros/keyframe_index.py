@@ -31,7 +31,7 @@ descriptor the index keeps small keys and searches in (up to) four stages:
    (default: all of them); the whole key at those keeps the ``rerank`` candidates with the smallest
    bound and, for each, its ``yaw_shifts`` most promising shifts.
 3. **Exact re-rank**: D_k at those shifts, in float32, with the same compiled
-   sums as :meth:`KeyframeIndex.exact_search` (:mod:`vbrl_ros.weighted_l1_kernels`),
+   sums as :meth:`KeyframeIndex.exact_search` (:mod:`vbrl_ros.model.distance_kernels`),
    so a keyframe's distance is bitwise the same in both. Only the nearest
    ``max(complete_rows, top_k)`` (``top_k`` when S = 1) matter from here, so the
    rows go most promising first (smallest bound or key score) and a row is
@@ -70,14 +70,14 @@ import numpy as np
 from vbrl_ros import index_keys as kk
 from vbrl_ros import row_selection as rs
 from vbrl_ros.index_parameters import checked_int, search_parameters
-from vbrl_ros import weighted_l1_kernels as wk
+from vbrl_ros.model import distance_kernels as wk
 from vbrl_ros.keyframe_index_state import (  # noqa: F401 - re-exported
     INDEX_FORMAT,
     INDEX_FORMAT_VERSION,
     index_from_state,
     index_state,
 )
-from vbrl_ros.sector_shift import refined_yaw, yaw_of_shift
+from vbrl_ros.model.sector_shift import refined_yaw, yaw_of_shift
 
 _INITIAL_CAPACITY = 64
 _BATCH_ROWS = 4096  # keys of a bulk insert are computed in chunks of this many rows

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vbrl_ros.database import KeyframeDatabase
-from vbrl_ros.model import VBRLModel
+from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.registration import downsample_for_storage, verify_loop, yaw_guess
 
 

@@ -30,10 +30,10 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from vbrl_ros.database import DatabaseFileError, KeyframeDatabase
-from vbrl_ros.default_model import load_default_model
 from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
 from vbrl_ros.loop_closure import DetectorConfig, LoopClosureDetector
-from vbrl_ros.model import ModelFileError, load_model
+from vbrl_ros.model.builtin import load_default_model
+from vbrl_ros.model.model_file import ModelFileError, load_model
 from vbrl_ros.node_outputs import NodeStats, diagnostics_status, keyframe_markers
 from vbrl_ros.node_settings import NodeSettings, SettingsError
 from vbrl_ros.ros_messages import closures_message, lio_sam_message

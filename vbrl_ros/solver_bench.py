@@ -10,17 +10,10 @@ import time
 
 import numpy as np
 
-from vbrl_ros.solver import (
-    GramAccumulator,
-    GramStats,
-    RowGroups,
-    _GramStepper,
-    _lstsq_x,
-    _woodbury_step,
-    default_eps,
-    irls_weights,
-    solve_vbrl,
-)
+from vbrl_ros.model.gram import GramAccumulator, GramStats, GramStepper
+from vbrl_ros.model.solver import (RowGroups, default_eps, irls_weights, least_squares_x, solve_vbrl,
+                                   woodbury_step)
+from vbrl_ros.model.solver_reference import literal_step
 
 
 def _random_problem(n: int, d: int, c: int, seed: int):
@@ -39,17 +32,17 @@ def time_one_iteration(n: int = 700, d: int = 7872, c: int = 2, seed: int = 0) -
     """Seconds for one IRLS step: fast path (Woodbury if n < d, else Gram-Cholesky) vs the
     literal generic d×d solve of (XXᵀ + Λ)W = XY (XXᵀ precomputed for both, not timed)."""
     X, Y, groups = _random_problem(n, d, c, seed)
-    W = _lstsq_x(X, Y)
+    W = least_squares_x(X, Y)
     lam = irls_weights(W, groups, 10.0, 0.1, default_eps(W))
     t = time.perf_counter()
-    W_fast = _woodbury_step(X, Y, lam) if n < d else None
+    W_fast = woodbury_step(X, Y, lam) if n < d else None
     t_fast = time.perf_counter() - t
     XXt, XY = X @ X.T, X @ Y
     t = time.perf_counter()
-    W_gram = _GramStepper(GramStats(XXt, XY, float(np.sum(Y * Y)), n), "cholesky", 0, 0)(lam, W)
+    W_gram = GramStepper(GramStats(XXt, XY, float(np.sum(Y * Y)), n), "cholesky", 0, 0)(lam, W)
     t_gram = time.perf_counter() - t
     t = time.perf_counter()
-    W_lit = np.linalg.solve(XXt + np.diag(lam), XY)
+    W_lit = literal_step(XXt, XY, lam)
     t_lit = time.perf_counter() - t
     if W_fast is None:
         W_fast, t_fast = W_gram, t_gram

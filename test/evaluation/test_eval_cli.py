@@ -12,7 +12,7 @@ import pytest
 from vbrl_ros import cli
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
 from vbrl_ros.evaluation import evaluate_matches_file
-from vbrl_ros.model import load_model
+from vbrl_ros.model.model_file import load_model
 from vbrl_ros.training.ablations import ablation_path
 
 sim = pytest.importorskip("vbrl_ros.simulator")
@@ -159,7 +159,7 @@ def test_bad_inputs_exit_2_with_one_line(trained, tmp_path, monkeypatch, capsys)
     m.config = VBRLConfig(grid=VoxelGridConfig(cells_xy=4))
     m.W = np.zeros((m.config.grid.n_voxels * 41, 2))
     d = len(m.W)
-    from vbrl_ros.model import VBRLModel
+    from vbrl_ros.model.model_file import VBRLModel
 
     VBRLModel(config=m.config, W=m.W, feature_mean=np.zeros(d), feature_scale=np.ones(d),
               lambda1=0, lambda2=0, scenarios=m.scenarios).save(ablation_path(other, "concatenation"))

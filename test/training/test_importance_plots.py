@@ -5,7 +5,7 @@ import numpy as np
 
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
 from vbrl_ros.features.featurizer import Featurizer
-from vbrl_ros.model import VBRLModel
+from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.training.plots import save_importance_plots
 from vbrl_ros.training.report import importance_report, layer_shares
 

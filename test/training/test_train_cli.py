@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vbrl_ros import cli
-from vbrl_ros.model import load_model
+from vbrl_ros.model.model_file import load_model
 from vbrl_ros.training.ablations import ABLATIONS, ablation_path
 
 sim = pytest.importorskip("vbrl_ros.simulator")

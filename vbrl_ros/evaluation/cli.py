@@ -33,7 +33,7 @@ from vbrl_ros.evaluation.metrics import (
 )
 from vbrl_ros.evaluation.retrieval import RetrievalResults, cross_session_retrieval, online_retrieval
 from vbrl_ros.io.atomic import atomic_write
-from vbrl_ros.model import VBRLModel, load_model
+from vbrl_ros.model.model_file import VBRLModel, load_model
 from vbrl_ros.training.ablations import FULL_NAME, discover_ablations
 from vbrl_ros.training.cli import add_keyframe_arguments, add_source_arguments
 

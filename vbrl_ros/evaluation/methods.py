@@ -27,9 +27,9 @@ from vbrl_ros.datasets import open_source
 from vbrl_ros.evaluation.retrieval import DistancesFn
 from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.keyframe_index import KeyframeIndex
-from vbrl_ros.model import VBRLModel
+from vbrl_ros.model.model_file import VBRLModel
+from vbrl_ros.model.scoring import WeightedL1Scorer
 from vbrl_ros.scan_context import ScanContextConfig, ScanContextDatabase, scan_context
-from vbrl_ros.scoring import WeightedL1Scorer
 from vbrl_ros.training.keyframes import _bounded_map, default_workers, select_keyframes, source_points
 
 __all__ = ["SourceDescriptors", "describe_source", "VBRLMethod", "ScanContextMethod",

@@ -37,7 +37,7 @@ OCCUPANCY_BITS = 8  # one per octant
 
 @dataclass(frozen=True, eq=False)
 class TiedLayout:
-    """Groups of rows that share one weight: a :class:`~vbrl_ros.scoring.RowLayout`.
+    """Groups of rows that share one weight: a :class:`~vbrl_ros.model.scoring.RowLayout`.
 
     ``voxel_of_row`` numbers weight groups (e.g. a polar grid's (layer, ring)
     columns), not voxels of the grid.

@@ -33,7 +33,7 @@ from tqdm import tqdm
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.evaluation.methods import scorer_top_k
 from vbrl_ros.evaluation.metrics import evaluate_retrieval
-from vbrl_ros.model import VBRLModel
+from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.training.fit import fit_model
 
 DEFAULT_LAMBDA1_GRID = (0.0, 1.0, 10.0, 100.0)

@@ -1,4 +1,4 @@
-"""From raw descriptors and scenario labels to a :class:`~vbrl_ros.model.VBRLModel`."""
+"""From raw descriptors and scenario labels to a :class:`~vbrl_ros.model.model_file.VBRLModel`."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import numpy as np
 
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.features.featurizer import FeatureLayout, Featurizer
-from vbrl_ros.model import VBRLModel
-from vbrl_ros.solver import RowGroups, SolverResult, solve_vbrl
+from vbrl_ros.model.model_file import VBRLModel
+from vbrl_ros.model.solver import RowGroups, SolverResult, solve_vbrl
 
 #: Features whose spread over the training set is below this are constant:
 #: they keep a unit scale instead of blowing up to 1/0.

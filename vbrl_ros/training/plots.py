@@ -20,7 +20,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from vbrl_ros.features.featurizer import MODALITIES
-from vbrl_ros.model import VBRLModel
+from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.training.ablations import sibling_path
 from vbrl_ros.training.report import layer_names, layer_shares
 

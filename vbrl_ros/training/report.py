@@ -10,7 +10,7 @@ import numpy as np
 
 from vbrl_ros.features.featurizer import MODALITIES
 from vbrl_ros.grids.cartesian import CartesianVoxelGrid
-from vbrl_ros.model import VBRLModel
+from vbrl_ros.model.model_file import VBRLModel
 
 LAYER_NAMES = {3: ("bottom", "middle", "top")}
 

@@ -6,7 +6,7 @@ A training set larger than memory (n·d·4 bytes; 100k scans x 7872 features is
 
     G_raw = Σ x xᵀ (d×d),  s = Σ x (d),  B_raw = Σ x yᵀ (d×c),  Yᵀ1 (c),  ‖Y‖²,  n
 
-(G_raw, B_raw, ‖Y‖², n by :class:`~vbrl_ros.solver.GramAccumulator`). The
+(G_raw, B_raw, ‖Y‖², n by :class:`~vbrl_ros.model.gram.GramAccumulator`). The
 standardisation of :func:`~vbrl_ros.training.fit.standardization` follows
 algebraically, with μ = s/n and S = diag(scale), scale² = diag(G_raw)/n − μ²:
 
@@ -43,8 +43,9 @@ from tqdm import tqdm
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.datasets import open_source
 from vbrl_ros.features.featurizer import Featurizer
-from vbrl_ros.model import VBRLModel
-from vbrl_ros.solver import GramAccumulator, GramStats, solve_vbrl
+from vbrl_ros.model.gram import GramAccumulator, GramStats
+from vbrl_ros.model.model_file import VBRLModel
+from vbrl_ros.model.solver import solve_vbrl
 from vbrl_ros.training.fit import MIN_FEATURE_SCALE, TrainingResult, pool_tied, row_groups
 from vbrl_ros.training.keyframes import (
     _bounded_map,

@@ -14,7 +14,7 @@ import numpy as np
 
 from vbrl_ros.evaluation.methods import scorer_top_k
 from vbrl_ros.evaluation.metrics import evaluate_retrieval, pr_curve
-from vbrl_ros.model import VBRLModel
+from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.training.cv import _protocol_pairs
 
 

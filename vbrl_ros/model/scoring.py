@@ -12,7 +12,7 @@ norms switched off) do not contribute, so they are dropped before scoring.
 
 On a polar grid (``sector_rows``, weights tied across sectors) the distance is
 minimised over circular sector shifts and comes with the yaw of the best
-shift (:mod:`vbrl_ros.sector_shift`): heading-robust recognition.
+shift (:mod:`vbrl_ros.model.sector_shift`): heading-robust recognition.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from typing import Protocol
 
 import numpy as np
 
-from vbrl_ros.sector_shift import refined_yaw, yaw_of_shift
-from vbrl_ros.weighted_l1_kernels import at_shifts, min_over_shifts
+from vbrl_ros.model.distance_kernels import at_shifts, min_over_shifts
+from vbrl_ros.model.sector_shift import refined_yaw, yaw_of_shift
 
 
 class RowLayout(Protocol):
@@ -86,7 +86,7 @@ class WeightedL1Scorer:
     ``active_rows = sector_rows[:, active_columns].ravel()``, so a compact
     descriptor is sector-major: ``compact(x).reshape(S, R_active)``. Distances
     are then minimised over circular sector shifts (see
-    :mod:`vbrl_ros.sector_shift` for the yaw that comes with them). Without
+    :mod:`vbrl_ros.model.sector_shift` for the yaw that comes with them). Without
     ``sector_rows``: S = 1, ``active_rows`` ascending.
     """
 

@@ -34,7 +34,7 @@ from vbrl_ros.config import VBRLConfig
 from vbrl_ros.features.featurizer import Featurizer, FeatureLayout
 from vbrl_ros.io.atomic import atomic_write
 from vbrl_ros.io.npz import one_line, read_npz
-from vbrl_ros.scoring import WeightedL1Scorer, importance_weights, row_weights
+from vbrl_ros.model.scoring import WeightedL1Scorer, importance_weights, row_weights
 
 MODEL_FORMAT = "vbrl_ros.model"
 MODEL_FORMAT_VERSION = 1

@@ -1,11 +1,12 @@
-"""The built-in default model: trained on the simulator's scenarios, shipped with the package.
+"""Building the built-in default model: trained on the simulator's scenarios.
 
-It lets ``vbrl_node`` work out of the box. Rebuild it with::
+Rebuild it with::
 
     vbrl demo --rebuild-default-model
 
-which simulates the scenarios below, trains W and overwrites
-``vbrl_ros/data/default_model.npz``. Deterministic for the seeds given here.
+which simulates the scenarios of :class:`SimulatedTrainingSpec`, trains W and
+overwrites the file :mod:`vbrl_ros.model.builtin` loads. Deterministic for
+the seeds given here.
 """
 
 from __future__ import annotations
@@ -16,11 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from vbrl_ros.config import VBRLConfig
-from vbrl_ros.model import ModelFileError, VBRLModel, load_model
+from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
 from vbrl_ros.training.fit import TrainingResult, fit_model
 from vbrl_ros.training.keyframes import featurize
-
-DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "data" / "default_model.npz"
 
 
 @dataclass(frozen=True)
@@ -84,12 +83,3 @@ def build_default_model(
     model.metadata["distance_threshold_info"] = threshold
     model.save(out)
     return result
-
-
-def load_default_model() -> VBRLModel:
-    if not DEFAULT_MODEL_PATH.is_file():
-        raise ModelFileError(
-            f"the built-in default model {DEFAULT_MODEL_PATH} is missing; "
-            "rebuild it with `vbrl demo --rebuild-default-model` or set model_path"
-        )
-    return load_model(DEFAULT_MODEL_PATH)

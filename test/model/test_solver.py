@@ -1,11 +1,12 @@
-"""Tests for vbrl_ros.solver (DESIGN.md §2: Eq. 3 and Algorithm 1)."""
+"""Tests for vbrl_ros.model.solver (DESIGN.md §2: Eq. 3 and Algorithm 1)."""
 import numpy as np
 import pytest
 import scipy.optimize
 from hypothesis import given, settings, strategies as st
 
-from vbrl_ros.solver import (GramAccumulator, GramStats, RowGroups, default_eps, irls_weights,
-                             objective, solve_literal, solve_vbrl)
+from vbrl_ros.model.gram import GramAccumulator, GramStats
+from vbrl_ros.model.solver import RowGroups, default_eps, irls_weights, objective, solve_vbrl
+from vbrl_ros.model.solver_reference import solve_literal
 
 TIGHT = dict(tol=1e-14, max_iter=3000)
 

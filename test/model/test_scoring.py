@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from vbrl_ros.features.featurizer import FeatureLayout
-from vbrl_ros.scoring import WeightedL1Scorer, importance_weights, row_weights
+from vbrl_ros.model.scoring import WeightedL1Scorer, importance_weights, row_weights
 
 LAYOUT = FeatureLayout(n_voxels=3, features_per_modality=(2, 1))  # d = 3*2 + 3*1 = 9
 

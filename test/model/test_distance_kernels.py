@@ -3,7 +3,7 @@
 import numpy as np
 from numba import njit
 
-from vbrl_ros import weighted_l1_kernels as wk
+from vbrl_ros.model import distance_kernels as wk
 
 
 @njit

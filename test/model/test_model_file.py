@@ -6,7 +6,7 @@ import pytest
 
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
 from vbrl_ros.features.featurizer import Featurizer
-from vbrl_ros.model import ModelFileError, VBRLModel, load_model
+from vbrl_ros.model.model_file import ModelFileError, VBRLModel, load_model
 
 CONFIG = VBRLConfig(grid=VoxelGridConfig(cells_xy=4))
 
