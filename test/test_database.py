@@ -17,6 +17,7 @@ from vbrl_ros.database import (
     DatabaseFileError,
     KeyframeDatabase,
 )
+from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
 D = 40  # full descriptor length of the toy model
@@ -185,7 +186,7 @@ def test_bytes_per_keyframe_is_descriptor_key_and_metadata():
     full = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), model_id="default")
     # 256 + 512 four-bit key entries (scan key, refine key)
     assert full.bytes_per_keyframe() == 7872 * 4 + 384 + METADATA_BYTES_PER_KEYFRAME == 32028
-    half = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), model_id="default", storage="float16")
+    half = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), "default", IndexParameters(storage="float16"))
     assert half.bytes_per_keyframe() == 7872 * 2 + 384 + METADATA_BYTES_PER_KEYFRAME
     assert full.cloud_bytes_per_keyframe() == 0.0
 
@@ -350,7 +351,7 @@ def test_one_copy_of_the_descriptors_lives_in_the_index():
 
 
 def test_float16_storage_round_trips_and_finds_itself(tmp_path):
-    db = KeyframeDatabase(SCORER, "model-A", storage="float16")
+    db = KeyframeDatabase(SCORER, "model-A", IndexParameters(storage="float16"))
     full = np.random.default_rng(5).normal(size=(200, D)).astype(np.float32)
     for i, x in enumerate(full):
         db.add(SCORER.compact(x), float(i), "s")
@@ -362,7 +363,7 @@ def test_float16_storage_round_trips_and_finds_itself(tmp_path):
     expected = np.abs(stored - SCORER.compact(full[7])) @ SCORER.active_weights
     np.testing.assert_allclose([c.distance for c in best], np.sort(expected)[:3], rtol=1e-5)
     loaded = KeyframeDatabase.load(db.save(tmp_path / "kf.npz"), SCORER, "model-A")
-    assert loaded.index.storage == "float16"
+    assert loaded.index.parameters.storage == "float16"
     assert loaded.query(SCORER.compact(full[7]), top_k=3) == best
     with pytest.raises(ValueError, match="float16 range"):
         db.add(np.full(db.n_active, 1e6), 0.0, "s")
@@ -401,7 +402,7 @@ def test_polar_candidates_carry_the_yaw_of_the_best_shift(tmp_path):
 
 
 def test_recency_exclusion_is_exact_in_a_large_database():
-    db = KeyframeDatabase(SCORER, model_id="m", candidates=4)  # few candidates: mask must act first
+    db = KeyframeDatabase(SCORER, model_id="m", parameters=IndexParameters(candidates=4))  # few candidates: mask must act first
     x = np.random.default_rng(0).normal(size=(3000, db.n_active)).astype(np.float32)
     for i, v in enumerate(x):
         db.add(v, stamp=float(i), session="B" if i % 3 == 0 else "A")

@@ -5,7 +5,7 @@ rows — rows the learned sparsity switched off cost no memory), the stamp, the
 session, a unique keyframe id, an optional pose and an optional downsampled
 cloud for geometric verification.
 
-The descriptors live in one place, a :class:`~vbrl_ros.keyframe_index.KeyframeIndex`
+The descriptors live in one place, a :class:`~vbrl_ros.index.keyframe_index.KeyframeIndex`
 (float32 or float16, next to its small search keys), which also answers
 queries: candidate keys + exact Eq. 4 re-rank, or brute force with
 ``exact=True``. On a polar grid (``scorer.sectors`` > 1) distances are minimised
@@ -30,15 +30,16 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from vbrl_ros.index.keyframe_index import KeyframeIndex
+from vbrl_ros.index.keyframe_store import grown
+from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.io.atomic import atomic_write
 from vbrl_ros.io.npz import one_line, read_npz
-from vbrl_ros.keyframe_index import KeyframeIndex, grown
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
 DATABASE_FORMAT = "vbrl_ros.keyframes"
@@ -77,17 +78,17 @@ class Candidate:
 class KeyframeDatabase:
     """Keyframes scored with one model's :class:`WeightedL1Scorer` (lower distance = closer).
 
-    ``storage`` (``"float32"`` or ``"float16"``) and ``index_options`` (e.g.
-    ``candidates``, ``rerank``, ``yaw_shifts``, ``yaw_refine``; see
-    :class:`~vbrl_ros.keyframe_index.KeyframeIndex`) configure the index.
+    ``parameters`` (storage, search; see
+    :class:`~vbrl_ros.index.parameters.IndexParameters`) configure the index;
+    its sectors are always the scorer's.
     """
 
-    def __init__(self, scorer: WeightedL1Scorer, model_id: str, *, storage: str = "float32",
-                 **index_options: Any) -> None:
+    def __init__(self, scorer: WeightedL1Scorer, model_id: str,
+                 parameters: IndexParameters | None = None) -> None:
         self.scorer = scorer
         self.model_id = str(model_id)
-        self.index = KeyframeIndex(scorer.active_weights, sectors=scorer.sectors,
-                                   storage=storage, **index_options)
+        self.index = KeyframeIndex(scorer.active_weights,
+                                   replace(parameters or IndexParameters(), sectors=scorer.sectors))
         self._next_id = 0
         self._reset_storage()
 

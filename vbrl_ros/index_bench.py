@@ -33,13 +33,15 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
 
 from vbrl_ros import bench_descriptors as bd
 from vbrl_ros.database import KeyframeDatabase
-from vbrl_ros.keyframe_index import KeyframeIndex
+from vbrl_ros.index.keyframe_index import KeyframeIndex
+from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
 DEFAULT_SIZES = (1_000, 10_000, 100_000)
@@ -73,7 +75,7 @@ def measure(sizes: tuple[int, ...] = DEFAULT_SIZES, repeats: int = 50, seed: int
                                "polar_model": label,
                                "shapes": {}}
     for name, data in sets.items():
-        params = KeyframeIndex(data.weights, sectors=data.sectors).options()
+        params = asdict(KeyframeIndex(data.weights, IndexParameters(sectors=data.sectors)).parameters)
         results["shapes"][name] = {
             "d_active": data.descriptors.shape[1], "sectors": data.sectors, "params": params,
             "memory": {s: _memory(data.scorer, s) for s in STORAGES},
@@ -85,16 +87,17 @@ def measure(sizes: tuple[int, ...] = DEFAULT_SIZES, repeats: int = 50, seed: int
 
 
 def _memory(scorer: WeightedL1Scorer, storage: str) -> dict[str, int]:
-    parts = KeyframeDatabase(scorer, "bench", storage=storage).bytes_breakdown()
+    parts = KeyframeDatabase(scorer, "bench", IndexParameters(storage=storage)).bytes_breakdown()
     return {**parts, "total": sum(parts.values())}
 
 
 def drive_comparison(data: bd.DescriptorSet, reference: bd.DescriptorSet) -> dict[str, Any]:
     """Winter queries against the summer drive: index on ``data`` vs brute force on ``reference``."""
     database, queries = np.flatnonzero(data.session == 0), np.flatnonzero(data.session == 1)
-    index = KeyframeIndex(data.weights, sectors=data.sectors)
+    index = KeyframeIndex(data.weights, IndexParameters(sectors=data.sectors))
     index.add_batch(data.descriptors[database])
-    exact = index if reference is data else KeyframeIndex(reference.weights, sectors=reference.sectors)
+    exact = (index if reference is data
+             else KeyframeIndex(reference.weights, IndexParameters(sectors=reference.sectors)))
     if exact is not index:
         exact.add_batch(reference.descriptors[database])
     positions = data.poses[:, :2, 3]
@@ -159,7 +162,7 @@ def _scale(data: bd.DescriptorSet, sizes: tuple[int, ...], repeats: int, seed: i
     rows: list[dict[str, Any]] = [{"n": n} for n in sorted(sizes)]
     base = data.descriptors[data.session == 0]
     for storage in STORAGES:
-        index = KeyframeIndex(data.weights, sectors=data.sectors, storage=storage)
+        index = KeyframeIndex(data.weights, IndexParameters(sectors=data.sectors, storage=storage))
         total = max(sizes) + repeats * len(sizes)
         index.reserve(total)
         feed, rng = _Feed(base, total, seed), np.random.default_rng([seed, 7])

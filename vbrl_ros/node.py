@@ -30,6 +30,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from vbrl_ros.database import DatabaseFileError, KeyframeDatabase
+from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
 from vbrl_ros.loop_closure import DetectorConfig, LoopClosureDetector
 from vbrl_ros.model.builtin import load_default_model
@@ -119,7 +120,7 @@ class VbrlNode(Node):
         if path and Path(path).exists():
             # a saved database keeps its own storage type (and refuses another prune)
             return KeyframeDatabase.load(path, scorer, model_id)
-        return KeyframeDatabase(scorer, model_id, storage=self.settings.descriptor_storage)
+        return KeyframeDatabase(scorer, model_id, IndexParameters(storage=self.settings.descriptor_storage))
 
     def _next_session(self) -> int:
         numeric = [int(name) for name in self.database.sessions if name.isdigit()]

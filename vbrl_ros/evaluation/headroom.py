@@ -1,7 +1,7 @@
 """How much room the keyframe index's first stage leaves before it misses matches at scale.
 
 The index keeps a fixed number of candidates from its 4-bit key scan (512
-Cartesian / 1024 polar by default, :func:`~vbrl_ros.index_parameters.default_parameters`),
+Cartesian / 1024 polar by default, :func:`~vbrl_ros.index.parameters.default_parameters`),
 so the larger the map, the smaller the share of it that reaches the exact
 re-rank: 1 % at 100k polar keyframes, 0.5 % Cartesian. An evaluation set is
 small enough that the index re-ranks most of it, so agreeing with brute force
@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from vbrl_ros.keyframe_index import KeyframeIndex
+from vbrl_ros.index.keyframe_index import KeyframeIndex
 
 SHARES = (0.005, 0.01, 0.05)  # key-ranking prefixes reported (share of the database)
 
@@ -32,8 +32,8 @@ def key_rank_shares(index: KeyframeIndex, queries: np.ndarray, templates: np.nda
     (n_q,) the template each query should find (e.g. the brute-force top-1),
     -1 to skip (NaN out). Ties count half, so equal keys do not flatter.
     """
-    key_q = index.keys(queries).astype(np.int16)
-    key_t = index.keys(templates).astype(np.int16)
+    key_q = index.store.keys(queries).astype(np.int16)
+    key_t = index.store.keys(templates).astype(np.int16)
     out = np.full(len(queries), np.nan)
     for q, (target, limit) in enumerate(zip(targets, limits)):
         if target < 0 or limit <= 0:

@@ -26,7 +26,8 @@ from vbrl_ros.config import VBRLConfig
 from vbrl_ros.datasets import open_source
 from vbrl_ros.evaluation.retrieval import DistancesFn
 from vbrl_ros.features.featurizer import Featurizer
-from vbrl_ros.keyframe_index import KeyframeIndex
+from vbrl_ros.index.keyframe_index import KeyframeIndex
+from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.model.scoring import WeightedL1Scorer
 from vbrl_ros.scan_context import ScanContextConfig, ScanContextDatabase, scan_context
@@ -137,7 +138,7 @@ def scorer_top_k(
     out_y = np.zeros((len(Q), k))
     if len(T) == 0 or len(Q) == 0:
         return out_i, out_d, out_y
-    index = KeyframeIndex(scorer.active_weights, sectors=scorer.sectors)
+    index = KeyframeIndex(scorer.active_weights, IndexParameters(sectors=scorer.sectors))
     # queries in increasing database prefix: the index only ever grows
     for q in np.argsort(lim, kind="stable"):
         if lim[q] <= 0:
@@ -175,7 +176,7 @@ class VBRLMethod:
 
     def new_index(self) -> KeyframeIndex:
         """An empty index for this method's scorer, as the node builds it."""
-        return KeyframeIndex(self.scorer.active_weights, sectors=self.scorer.sectors)
+        return KeyframeIndex(self.scorer.active_weights, IndexParameters(sectors=self.scorer.sectors))
 
     def distances_fn(self, queries: SourceDescriptors, database: SourceDescriptors) -> DistancesFn:
         Q = self.compact(queries.vbrl)

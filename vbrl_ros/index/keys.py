@@ -2,7 +2,7 @@
 
 Both keys are signed group sums of weighted descriptor entries, so by the
 triangle inequality their L1 distances are lower bounds of the Eq. 4 distance
-(see :mod:`vbrl_ros.keyframe_index`):
+(see :mod:`vbrl_ros.index.keyframe_index`):
 
 - the *candidate key* (``key_dim`` entries) sums every column over the sectors
   first, so it does not change when a scan is rotated by whole sectors; a

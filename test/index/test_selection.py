@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from vbrl_ros import row_selection as rs
+from vbrl_ros.index import selection as rs
 
 
 def test_smallest_per_row_are_the_stable_argsort_positions_ascending():

@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 
 from vbrl_ros import bench_descriptors as bd
+from vbrl_ros.index.keyframe_index import KeyframeIndex
+from vbrl_ros.index.parameters import IndexParameters
+from vbrl_ros.index.state import INDEX_FORMAT_VERSION
 from vbrl_ros.index_bench import winter_comparison
-from vbrl_ros.keyframe_index import INDEX_FORMAT_VERSION, KeyframeIndex
 from vbrl_ros.model.distance_kernels import min_over_shifts
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
@@ -61,7 +63,7 @@ def drive() -> tuple[bd.DescriptorSet, bd.DescriptorSet]:
 def test_distances_match_the_scorer():
     x, _ = _clustered(300, 500, 10, 0)
     w = _weights(500)
-    index = KeyframeIndex(w, key_dim=64)
+    index = KeyframeIndex(w, IndexParameters(key_dim=64))
     index.add_batch(x)
     rows, dist = index.exact_search(x[0] + 0.1, top_k=300)
     reference = WeightedL1Scorer(w.astype(np.float64)).distances(x[0] + 0.1, x)
@@ -73,7 +75,7 @@ def test_polar_distances_match_the_scorer_and_are_the_same_in_both_searches():
     x, weights, _ = _polar(400)
     sector_rows = np.arange(len(weights)).reshape(12, -1)
     scorer = WeightedL1Scorer(weights, sector_rows=sector_rows)
-    index = KeyframeIndex(weights, sectors=12, candidates=400, rerank=400, yaw_shifts=12)
+    index = KeyframeIndex(weights, IndexParameters(sectors=12, candidates=400, rerank=400, yaw_shifts=12))
     index.add_batch(x)
     q = _roll(x[5], 12, 4) + 0.3
     found = index.search_with_yaw(q, top_k=400)
@@ -95,8 +97,8 @@ def test_polar_distances_match_the_scorer_and_are_the_same_in_both_searches():
 def test_keys_bound_the_distance_from_below_at_every_shift():
     sectors = 8
     x, weights, column_weights = _polar(60, sectors=sectors, columns=30, seed=2)
-    index = KeyframeIndex(weights, sectors=sectors, key_dim=16, yaw_dim=5)
-    keys, yaw_keys = index.raw_keys(x)
+    index = KeyframeIndex(weights, IndexParameters(sectors=sectors, key_dim=16, yaw_dim=5))
+    keys, yaw_keys = index.store.raw_keys(x)
     cells = x.reshape(len(x), sectors, -1).astype(np.float64)
     for a in range(0, 60, 7):
         for b in range(1, 60, 5):
@@ -108,23 +110,24 @@ def test_keys_bound_the_distance_from_below_at_every_shift():
             for k in range(sectors):
                 yaw_bound = np.abs(np.roll(yaw_keys[a], -k, axis=0) - yaw_keys[b]).sum()
                 assert yaw_bound <= per_shift[k] * (1 + 1e-5) + 1e-6
-    assert np.array_equal(index.keys(_roll(x[3], sectors, 3)), index.keys(x[3]))
+    assert np.array_equal(index.store.keys(_roll(x[3], sectors, 3)), index.store.keys(x[3]))
 
 
 def test_float16_storage_widens_exactly():
     x, weights, _ = _polar(200, seed=4)
     x[0, :3] = [0.0, 6e-8, -3e-5]  # a zero and half-precision subnormals
-    half = KeyframeIndex(weights, sectors=12, storage="float16")
+    half = KeyframeIndex(weights, IndexParameters(sectors=12, storage="float16"))
     half.add_batch(x)
     rounded = x.astype(np.float16).astype(np.float32)
     np.testing.assert_array_equal(half.descriptor(0), rounded[0])
-    full = KeyframeIndex(weights, sectors=12)
+    full = KeyframeIndex(weights, IndexParameters(sectors=12))
     full.add_batch(rounded)
     for q in x[:10] + 0.05:
         a, b = half.search_with_yaw(q, 3, exact=True), full.search_with_yaw(q, 3, exact=True)
         np.testing.assert_array_equal(a.indices, b.indices)
         np.testing.assert_array_equal(a.distances, b.distances)
-    assert half.bytes_per_keyframe() == 480 * 2 + -(-half.key_dim // 2) + 4 * 12 * half.yaw_dim
+    p = half.parameters
+    assert half.bytes_per_keyframe() == 480 * 2 + -(-p.key_dim // 2) + 4 * 12 * p.yaw_dim
 
 
 # -- rotation search ---------------------------------------------------------------------
@@ -134,7 +137,7 @@ def test_float16_storage_widens_exactly():
 def test_rotated_keyframe_is_found_with_its_yaw(storage):
     sectors = 12
     x, weights, _ = _polar(2000, sectors=sectors, seed=5)
-    index = KeyframeIndex(weights, sectors=sectors, storage=storage)
+    index = KeyframeIndex(weights, IndexParameters(sectors=sectors, storage=storage))
     index.add_batch(x)
     rng = np.random.default_rng(6)
     for target in rng.integers(0, 2000, 40):
@@ -152,7 +155,7 @@ def test_rotated_keyframe_is_found_with_its_yaw(storage):
 def test_yaw_refinement_matches_the_scorer():
     x, weights, _ = _polar(50, seed=7)
     scorer = WeightedL1Scorer(weights, sector_rows=np.arange(len(weights)).reshape(12, -1))
-    index = KeyframeIndex(weights, sectors=12, yaw_refine=True)
+    index = KeyframeIndex(weights, IndexParameters(sectors=12, yaw_refine=True))
     index.add_batch(x)
     q = _roll(x[9], 12, 5) + 0.4
     found = index.search_with_yaw(q, 3)
@@ -171,8 +174,8 @@ def test_shift_completion_recovers_best_shifts_the_yaw_key_misses():
                      int(rng.integers(0, 12))) for i in rng.integers(0, 300, 40)]
     # every row reaches stage 3, but a 1-group yaw key tries one poorly chosen shift
     options = dict(sectors=12, candidates=300, rerank=300, yaw_dim=1, yaw_shifts=1)
-    without = KeyframeIndex(weights, complete_rows=0, **options)
-    completed = KeyframeIndex(weights, complete_rows=300, **options)  # all: must be exact
+    without = KeyframeIndex(weights, IndexParameters(complete_rows=0, **options))
+    completed = KeyframeIndex(weights, IndexParameters(complete_rows=300, **options))  # all: must be exact
     without.add_batch(x), completed.add_batch(x)
     missed = 0
     for q in queries:
@@ -186,7 +189,7 @@ def test_shift_completion_recovers_best_shifts_the_yaw_key_misses():
 
 def test_synthetic_clustered_top1_matches_exact():
     x, centres = _clustered(4000, 1024, 200, 2)
-    index = KeyframeIndex(_weights(1024), key_dim=128, candidates=64)
+    index = KeyframeIndex(_weights(1024), IndexParameters(key_dim=128, candidates=64))
     index.add_batch(x)
     rng = np.random.default_rng(3)
     queries = x[rng.integers(0, len(x), 200)] + 0.3 * rng.standard_normal((200, 1024)).astype(np.float32)
@@ -201,7 +204,7 @@ def _cross_season(data: bd.DescriptorSet, n: int, storage: str = "float32",
     is mostly scan i % B, whose position it gets).
     """
     summer, winter = np.flatnonzero(data.session == 0), np.flatnonzero(data.session == 1)
-    index = KeyframeIndex(data.weights, sectors=data.sectors, storage=storage)
+    index = KeyframeIndex(data.weights, IndexParameters(sectors=data.sectors, storage=storage))
     for chunk in bd.replicate(data.descriptors[summer], n):
         index.add_batch(chunk)
     picks = winter if queries is None else winter[:: max(1, len(winter) // queries)]
@@ -228,7 +231,7 @@ def test_cartesian_agrees_with_brute_force_at_a_few_thousand_keyframes(drive):
 
 def test_polar_at_a_few_thousand_keyframes(drive):
     polar = drive[1]
-    index = KeyframeIndex(polar.weights, sectors=polar.sectors)
+    index = KeyframeIndex(polar.weights, IndexParameters(sectors=polar.sectors))
     for chunk in bd.replicate(polar.descriptors[polar.session == 0], 3000):
         index.add_batch(chunk)
     rng = np.random.default_rng(8)
@@ -249,7 +252,7 @@ def test_polar_at_a_few_thousand_keyframes(drive):
 
 def test_exclusion_mask_and_callable_are_respected():
     x, _ = _clustered(2000, 256, 20, 4)
-    index = KeyframeIndex(_weights(256), key_dim=32, candidates=32)
+    index = KeyframeIndex(_weights(256), IndexParameters(key_dim=32, candidates=32))
     index.add_batch(x)
     forbidden = np.zeros(len(x), bool)
     forbidden[:1500] = True  # excludes most of every cluster
@@ -267,14 +270,14 @@ def test_exclusion_mask_and_callable_are_respected():
 
 def test_incremental_add_after_queries():
     x, _ = _clustered(600, 128, 30, 5)
-    index = KeyframeIndex(_weights(128), key_dim=32)
+    index = KeyframeIndex(_weights(128), IndexParameters(key_dim=32))
     assert len(index.search(x[0], 1)[0]) == 0
     for i, v in enumerate(x[:300]):
         assert index.add(v) == i
     index.search(x[0], 3)
     assert list(index.add_batch(x[300:])) == list(range(300, 600))
     assert len(index) == 600
-    np.testing.assert_array_equal(index.stored_keys(), index.keys(x))
+    np.testing.assert_array_equal(index.store.stored_keys(), index.store.keys(x))
     for i in (0, 127, 128, 299, 300, 599):  # key blocks hold 128 keyframes
         rows, dist = index.search(x[i], 1)
         assert rows[0] == i and dist[0] == 0.0
@@ -283,15 +286,15 @@ def test_incremental_add_after_queries():
 @pytest.mark.parametrize("storage", ["float32", "float16"])
 def test_state_round_trip(tmp_path, storage):
     x, weights, _ = _polar(500, seed=6)
-    index = KeyframeIndex(weights, sectors=12, key_dim=16, candidates=50, rerank=20, yaw_dim=6,
-                          yaw_shifts=3, complete_rows=5, refine_dim=40, scan_pool=3,
-                          bound_shifts=5, yaw_refine=True, seed=7, storage=storage)
+    index = KeyframeIndex(weights, IndexParameters(
+        sectors=12, key_dim=16, candidates=50, rerank=20, yaw_dim=6, yaw_shifts=3, complete_rows=5,
+        refine_dim=40, scan_pool=3, bound_shifts=5, yaw_refine=True, seed=7, storage=storage))
     index.add_batch(x)
     path = tmp_path / "db.npz"
     np.savez(path, other=np.arange(3), **index.state())
     with np.load(path, allow_pickle=False) as archive:
         restored = KeyframeIndex.from_state(archive)
-    assert len(restored) == 500 and restored.options() == index.options()
+    assert len(restored) == 500 and restored.parameters == index.parameters
     for q in x[:20] + 0.05:
         a, b = index.search_with_yaw(q, 4), restored.search_with_yaw(q, 4)
         for field in ("indices", "distances", "shifts", "yaws"):
@@ -301,12 +304,13 @@ def test_state_round_trip(tmp_path, storage):
     state = index.state()
     # files written before complete_rows, the refine key and bound_shifts existed get defaults
     first = {**state, "index_params": state["index_params"][:8]}
-    first["index_refine_keys"] = KeyframeIndex(weights, sectors=12, key_dim=16, seed=7,
-                                               storage=storage).refine_keys(index.descriptors())
+    first["index_refine_keys"] = KeyframeIndex(weights, IndexParameters(
+        sectors=12, key_dim=16, seed=7, storage=storage)).store.refine_keys(index.descriptors())
     legacy = KeyframeIndex.from_state(first)
-    assert legacy.complete_rows == KeyframeIndex(weights, sectors=12).complete_rows == 8
-    assert (legacy.refine_dim, legacy.scan_pool) == (40, 4)  # all 40 columns, 4x the candidates
-    assert legacy.bound_shifts == 12  # every shift
+    defaults = KeyframeIndex(weights, IndexParameters(sectors=12)).parameters
+    assert legacy.parameters.complete_rows == defaults.complete_rows == 8
+    assert (legacy.parameters.refine_dim, legacy.parameters.scan_pool) == (40, 4)  # all 40 columns, 4x the candidates
+    assert legacy.parameters.bound_shifts == 12  # every shift
     with pytest.raises(ValueError, match="lacks"):
         KeyframeIndex.from_state({"index_format": np.array("vbrl_ros.keyframe_index")})
     with pytest.raises(ValueError, match="version"):
@@ -315,8 +319,8 @@ def test_state_round_trip(tmp_path, storage):
     old = {**state, "index_format_version": np.array(2), "index_key_clip_sigma": np.array(4.0),
            "index_keys": (state["index_keys"].astype(np.int16) * 17).astype(np.int8)}
     rekeyed = KeyframeIndex.from_state(old)
-    np.testing.assert_array_equal(rekeyed.stored_keys(), index.stored_keys())
-    assert rekeyed.options() == index.options()
+    np.testing.assert_array_equal(rekeyed.store.stored_keys(), index.store.stored_keys())
+    assert rekeyed.parameters == index.parameters
     bad = state["index_yaw_keys"].copy()
     bad[0, 0, 0] += 1.0
     with pytest.raises(ValueError, match="do not match"):
@@ -326,7 +330,7 @@ def test_state_round_trip(tmp_path, storage):
 
 
 def test_rejects_bad_input():
-    index = KeyframeIndex(_weights(50), key_dim=8)
+    index = KeyframeIndex(_weights(50), IndexParameters(key_dim=8))
     with pytest.raises(ValueError, match="shape"):
         index.add(np.zeros(49))
     with pytest.raises(ValueError, match="NaN"):
@@ -337,25 +341,26 @@ def test_rejects_bad_input():
     # two 4-bit key entries per byte: 8 scan-key entries, and the refine key over all 50 columns
     assert index.bytes_per_keyframe() == 50 * 4 + 8 // 2 + 50 // 2
     with pytest.raises(ValueError, match="tied"):
-        KeyframeIndex(np.arange(1, 13, dtype=np.float32), sectors=3)
+        KeyframeIndex(np.arange(1, 13, dtype=np.float32), IndexParameters(sectors=3))
     with pytest.raises(ValueError, match="key_dim"):
-        KeyframeIndex(_weights(50), key_dim=300)
+        KeyframeIndex(_weights(50), IndexParameters(key_dim=300))
     with pytest.raises(ValueError, match="yaw_shifts"):
-        KeyframeIndex(np.ones(24, np.float32), sectors=4, yaw_shifts=5)
+        KeyframeIndex(np.ones(24, np.float32), IndexParameters(sectors=4, yaw_shifts=5))
     with pytest.raises(ValueError, match="complete_rows"):
-        KeyframeIndex(np.ones(24, np.float32), sectors=4, complete_rows=-1)
+        KeyframeIndex(np.ones(24, np.float32), IndexParameters(sectors=4, complete_rows=-1))
     # the shifts tried exactly are chosen among the bounded ones: at least yaw_shifts of them
     with pytest.raises(ValueError, match=r"bound_shifts must be an integer in \[3, 4\]"):
-        KeyframeIndex(np.ones(24, np.float32), sectors=4, yaw_shifts=3, bound_shifts=2)
-    assert KeyframeIndex(np.ones(48, np.float32), sectors=8, yaw_shifts=6).bound_shifts == 8
+        KeyframeIndex(np.ones(24, np.float32), IndexParameters(sectors=4, yaw_shifts=3, bound_shifts=2))
+    index = KeyframeIndex(np.ones(48, np.float32), IndexParameters(sectors=8, yaw_shifts=6))
+    assert index.parameters.bound_shifts == 8
     with pytest.raises(ValueError, match="yaw_dim"):
-        KeyframeIndex(np.ones(24, np.float32), yaw_dim=3)  # one sector: no yaw key
+        KeyframeIndex(np.ones(24, np.float32), IndexParameters(yaw_dim=3))  # one sector: no yaw key
 
 
 def test_key_groups_balance_weight_energy_so_heavy_columns_stand_alone():
     # A model whose weight sits on a few rows (scenario targets do that): a random
     # partition let the heaviest group set the int8 scale of all of them.
-    from vbrl_ros.index_keys import energy_balanced_groups
+    from vbrl_ros.index.keys import energy_balanced_groups
 
     rng = np.random.default_rng(3)
     weights = np.concatenate([np.full(8, 10.0), rng.uniform(0.0, 0.1, 992)])

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from vbrl_ros import index_keys as kk
+from vbrl_ros.index import keys as kk
 
 
 def _blocks(codes: np.ndarray) -> np.ndarray:

@@ -1,0 +1,7 @@
+"""Nearest-keyframe search for the rotation-minimised Eq. 4 distance.
+
+:mod:`.keyframe_index` (the staged search), :mod:`.parameters` (its one
+parameter object), :mod:`.keyframe_store` (descriptors and keys in memory),
+:mod:`.keys` (the small keys and their kernels), :mod:`.selection` (row-wise
+smallest-value picks), :mod:`.state` (saved arrays).
+"""
