@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from vbrl_ros import bench_descriptors as bd
-from vbrl_ros.database import KeyframeDatabase
+from vbrl_ros.detection.database import KeyframeDatabase
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.model.scoring import WeightedL1Scorer

@@ -1,6 +1,6 @@
 """``vbrl_node``: the online loop-closure detector as a ROS 2 node.
 
-A thin adapter around :class:`~vbrl_ros.loop_closure.LoopClosureDetector`:
+A thin adapter around :class:`~vbrl_ros.detection.detector.LoopClosureDetector`:
 the subscription callback only decides whether a scan is a keyframe and
 drops it into a one-slot mailbox; a worker thread decodes, scores, verifies,
 inserts and publishes. When the worker falls behind, the newest keyframe
@@ -29,10 +29,11 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from vbrl_ros.database import DatabaseFileError, KeyframeDatabase
+from vbrl_ros.detection.database import KeyframeDatabase
+from vbrl_ros.detection.database_file import DatabaseFileError
+from vbrl_ros.detection.detector import DetectorConfig, LoopClosureDetector
 from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
-from vbrl_ros.loop_closure import DetectorConfig, LoopClosureDetector
 from vbrl_ros.model.builtin import load_default_model
 from vbrl_ros.model.model_file import ModelFileError, load_model
 from vbrl_ros.node_outputs import NodeStats, diagnostics_status, keyframe_markers

@@ -13,8 +13,8 @@ from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point
 from visualization_msgs.msg import Marker, MarkerArray
 
-from vbrl_ros.database import KeyframeDatabase
-from vbrl_ros.loop_closure import KeyframeResult
+from vbrl_ros.detection.database import KeyframeDatabase
+from vbrl_ros.detection.detector import KeyframeResult
 
 RATE_WINDOW_S = 5.0
 

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from vbrl_ros.registration import (
+from vbrl_ros.detection.registration import (
     Verification,
     downsample_for_storage,
     verify_loop,
@@ -224,7 +224,7 @@ def test_downsample_for_storage(views):
 
 
 def test_ground_mask_separates_ground_from_structure(views):
-    from vbrl_ros.registration import _ground_mask
+    from vbrl_ros.detection.registration import _ground_mask
 
     query, _ = views
     ground = _ground_mask(query)

@@ -10,13 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import vbrl_ros.database as database_module
-from vbrl_ros.database import (
-    DATABASE_FORMAT_VERSION,
-    METADATA_BYTES_PER_KEYFRAME,
-    DatabaseFileError,
-    KeyframeDatabase,
-)
+import vbrl_ros.detection.database as database_module
+from vbrl_ros.detection.database import METADATA_BYTES_PER_KEYFRAME, KeyframeDatabase
+from vbrl_ros.detection.database_file import DATABASE_FORMAT_VERSION, DatabaseFileError
 from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.model.scoring import WeightedL1Scorer
 

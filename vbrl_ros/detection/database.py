@@ -16,46 +16,27 @@ the index's O(d) keys; clouds live in one concatenated ``(P, 3)`` float32
 array plus ``offsets`` (keyframe ``i`` owns ``points[offsets[i]:offsets[i + 1]]``).
 
 Distances are Eq. 4 (:class:`~vbrl_ros.model.scoring.WeightedL1Scorer`):
-**lower = more similar**.
-
-On disk: one versioned ``.npz`` (``format="vbrl_ros.keyframes"``,
-``format_version=2``: metadata plus the index's arrays under ``index_*``),
-written atomically, loaded with ``allow_pickle=False``. It records the
-``model_id`` and the scorer's active rows, because descriptors compacted or
-standardised for one model are meaningless under another. Version 1 files
-(before the index) are refused; rebuild them by replaying the data.
+**lower = more similar**. On disk: :mod:`vbrl_ros.detection.database_file`.
 """
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from vbrl_ros.detection.database_file import SavedDatabase, read_database, write_database
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.keyframe_store import grown
 from vbrl_ros.index.parameters import IndexParameters
-from vbrl_ros.io.atomic import atomic_write
-from vbrl_ros.io.npz import one_line, read_npz
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
-DATABASE_FORMAT = "vbrl_ros.keyframes"
-DATABASE_FORMAT_VERSION = 2
 _INITIAL_CAPACITY = 64
 # Fixed per-keyframe metadata: stamp f64 + session index i32 + id i64
 # + pose 4x4 f64 + cloud offset i64.
 METADATA_BYTES_PER_KEYFRAME = 8 + 4 + 8 + 16 * 8 + 8
-_ARRAY_KEYS = (
-    "stamps", "session_index", "keyframe_ids", "poses", "cloud_offsets", "cloud_points",
-)  # fmt: skip
-_INDEX_PREFIX = "index_"
-
-
-class DatabaseFileError(ValueError):
-    """A keyframe database file that cannot be used; one-line message naming the problem."""
 
 
 @dataclass(frozen=True)
@@ -291,129 +272,35 @@ class KeyframeDatabase:
     def save(self, path: str | Path) -> Path:
         """Write one versioned ``.npz`` atomically (temp file + rename)."""
         n, p = self._size, self._n_points
-        payload = dict(
-            format=np.array(DATABASE_FORMAT),
-            format_version=np.array(DATABASE_FORMAT_VERSION),
-            model_id=np.array(self.model_id),
-            dimension=np.array(self.scorer.dimension, dtype=np.int64),
-            active_rows=np.asarray(self.scorer.active_rows, dtype=np.int64),
-            sectors=np.array(self.scorer.sectors, dtype=np.int64),
-            sessions_json=np.array(json.dumps(self._sessions)),
-            next_keyframe_id=np.array(self._next_id, dtype=np.int64),
+        columns = dict(
             stamps=self._stamps[:n],
             session_index=self._session_index[:n],
             keyframe_ids=self._keyframe_ids[:n],
             poses=self._poses[:n],
             cloud_offsets=self._cloud_offsets[: n + 1],
             cloud_points=self._cloud_points[:p],
-            **self.index.state(_INDEX_PREFIX),
         )
-        return atomic_write(path, lambda handle: np.savez(handle, **payload))
+        return write_database(path, SavedDatabase(self.model_id, self._sessions, self._next_id,
+                                                  columns, self.index), self.scorer)
 
     @classmethod
     def load(cls, path: str | Path, scorer: WeightedL1Scorer, model_id: str) -> KeyframeDatabase:
-        """Load and validate; any problem raises :class:`DatabaseFileError` (one line).
+        """Load and validate; any problem raises
+        :class:`~vbrl_ros.detection.database_file.DatabaseFileError` (one line).
 
         The index parameters and storage are the saved ones.
         """
-        path = Path(path)
-        contents = read_npz(path, DatabaseFileError, "keyframe database")
-        if _scalar_str(contents.get("format")) != DATABASE_FORMAT:
-            raise DatabaseFileError(
-                f"{path} is not a vbrl_ros keyframe database (no format tag '{DATABASE_FORMAT}')"
-            )
-        version = _scalar_int(contents.get("format_version"))
-        if version != DATABASE_FORMAT_VERSION:
-            raise DatabaseFileError(
-                f"{path} has keyframe database format version {version}; this vbrl_ros reads "
-                f"version {DATABASE_FORMAT_VERSION} (rebuild the database by replaying the data)"
-            )
-        required = ("model_id", "dimension", "active_rows", "sectors", "sessions_json",
-                    "next_keyframe_id")
-        missing = [key for key in (*required, *_ARRAY_KEYS) if key not in contents]
-        if missing:
-            raise DatabaseFileError(f"{path} lacks {', '.join(missing)}")
-        stored_model = _scalar_str(contents["model_id"])
-        if stored_model != str(model_id):
-            raise DatabaseFileError(
-                f"{path} was built with model '{stored_model}', not the running model '{model_id}'"
-            )
-        active = contents["active_rows"]
-        dimension = _scalar_int(contents["dimension"])
-        sectors = _scalar_int(contents["sectors"])
-        if (dimension != scorer.dimension or sectors != scorer.sectors
-                or not np.array_equal(active, scorer.active_rows)):
-            raise DatabaseFileError(
-                f"{path} stores {active.size} active rows in {sectors} sector(s) of a "
-                f"{dimension}-row descriptor; the scorer uses {len(scorer.active_rows)} in "
-                f"{scorer.sectors} of {scorer.dimension} (different pruning or grid?)"
-            )
-        try:
-            sessions = json.loads(_scalar_str(contents["sessions_json"]))
-            if not isinstance(sessions, list):
-                raise ValueError("sessions_json is not a list")
-            db = cls(scorer, model_id)
-            db._restore(contents, [str(s) for s in sessions])
-        except (ValueError, TypeError) as error:
-            raise DatabaseFileError(f"{path} is inconsistent: {one_line(error)}") from None
+        saved = read_database(path, scorer, model_id)
+        db, c = cls(scorer, model_id), saved.columns
+        db.index = saved.index
+        db._size, db._n_points = len(c["stamps"]), len(c["cloud_points"])
+        db._next_id = saved.next_keyframe_id
+        db._sessions = list(saved.sessions)
+        db._session_lookup = {name: i for i, name in enumerate(db._sessions)}
+        db._stamps = c["stamps"].astype(np.float64, copy=False)
+        db._session_index = c["session_index"].astype(np.int32, copy=False)
+        db._keyframe_ids = c["keyframe_ids"].astype(np.int64, copy=False)
+        db._poses = c["poses"].astype(np.float64, copy=False)
+        db._cloud_offsets = c["cloud_offsets"].astype(np.int64, copy=False)
+        db._cloud_points = c["cloud_points"].astype(np.float32, copy=False)
         return db
-
-    def _restore(self, c: dict[str, np.ndarray], sessions: list[str]) -> None:
-        """Adopt loaded arrays after checking their shapes and invariants."""
-        n = len(c["stamps"])
-        expected = {
-            "stamps": ((n,), "f"),
-            "session_index": ((n,), "i"),
-            "keyframe_ids": ((n,), "i"),
-            "poses": ((n, 4, 4), "f"),
-            "cloud_offsets": ((n + 1,), "i"),
-        }
-        for key, (shape, kind) in expected.items():
-            if c[key].shape != shape or c[key].dtype.kind != kind:
-                raise ValueError(f"{key} has shape {c[key].shape} {c[key].dtype}, expected {shape}")
-        points, offsets, ids = c["cloud_points"], c["cloud_offsets"], c["keyframe_ids"]
-        if points.ndim != 2 or points.shape[1] != 3 or points.dtype.kind != "f":
-            raise ValueError(f"cloud_points has shape {points.shape}, expected (P, 3)")
-        if offsets[0] != 0 or offsets[-1] != len(points) or np.any(np.diff(offsets) < 0):
-            raise ValueError("cloud_offsets do not partition cloud_points")
-        if n and (np.any(np.diff(ids) <= 0) or ids[0] < 0):
-            raise ValueError("keyframe ids are not strictly increasing")
-        next_id = _scalar_int(c["next_keyframe_id"])
-        if next_id < 0 or (n and next_id <= ids[-1]):
-            raise ValueError("next_keyframe_id would reuse an id")
-        if n and (c["session_index"].min() < 0 or c["session_index"].max() >= len(sessions)):
-            raise ValueError("session index outside the session table")
-        if not np.all(np.isfinite(c["stamps"])):
-            raise ValueError("stamps contain NaN or inf")
-        index = KeyframeIndex.from_state(c, _INDEX_PREFIX)
-        if len(index) != n:
-            raise ValueError(f"the index holds {len(index)} descriptors for {n} keyframes")
-        if index.sectors != self.scorer.sectors or not np.array_equal(
-            index.weights, self.scorer.active_weights
-        ):
-            raise ValueError("the index was built with other weights than the scorer's")
-
-        self.index = index
-        self._size, self._n_points, self._next_id = n, len(points), next_id
-        self._sessions = sessions
-        self._session_lookup = {name: i for i, name in enumerate(sessions)}
-        self._stamps = c["stamps"].astype(np.float64, copy=False)
-        self._session_index = c["session_index"].astype(np.int32, copy=False)
-        self._keyframe_ids = ids.astype(np.int64, copy=False)
-        self._poses = c["poses"].astype(np.float64, copy=False)
-        self._cloud_offsets = offsets.astype(np.int64, copy=False)
-        self._cloud_points = points.astype(np.float32, copy=False)
-
-
-def _scalar_str(value: np.ndarray | None) -> str:
-    if value is None or value.shape != () or value.dtype.kind not in "US":
-        return ""
-    return str(value)
-
-
-def _scalar_int(value: np.ndarray | None) -> int:
-    if value is None or value.shape != () or value.dtype.kind not in "iu":
-        return -1
-    return int(value)
-
-

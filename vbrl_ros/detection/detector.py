@@ -12,9 +12,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vbrl_ros.database import KeyframeDatabase
+from vbrl_ros.detection.database import KeyframeDatabase
+from vbrl_ros.detection.registration import downsample_for_storage, verify_loop, yaw_guess
 from vbrl_ros.model.model_file import VBRLModel
-from vbrl_ros.registration import downsample_for_storage, verify_loop, yaw_guess
 
 
 @dataclass(frozen=True)
