@@ -4,7 +4,7 @@ import subprocess
 import sys
 
 CORE = ["config", "grids.kinds", "features.hog", "features.kernels", "features.featurizer", "model.solver", "model.scoring",
-        "model.model_file", "model.builtin", "detection.database", "detection.registration", "detection.detector", "scan_context", "training",
+        "model.model_file", "model.builtin", "detection.database", "detection.registration", "detection.detector", "evaluation.baselines.scan_context", "training",
         "evaluation", "simulator"]
 
 

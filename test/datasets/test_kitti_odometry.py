@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from vbrl_ros.datasets import detect_source_kind, open_source
 from vbrl_ros.datasets.base import ScanSourceError
 from vbrl_ros.datasets.kitti_odometry import KittiOdometrySource, read_calib_tr
-from vbrl_ros.poses import write_poses_txt
+from vbrl_ros.datasets.poses import write_poses_txt
 
 # Velodyne -> camera 0 of KITTI sequence 00 (rounded): the axes swap x-forward to z-forward.
 TR_CAM_VELO = np.array([[0.000428, -0.999967, -0.008084, -0.011985],

@@ -20,7 +20,7 @@ import numpy as np
 
 from vbrl_ros.datasets.base import ScanSourceError
 from vbrl_ros.datasets.kitti_style import BinFolderSource, read_times_txt, scan_files
-from vbrl_ros.poses import read_poses_txt
+from vbrl_ros.datasets.poses import read_poses_txt
 
 
 def read_calib_tr(path: Path) -> np.ndarray:

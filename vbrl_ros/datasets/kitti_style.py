@@ -18,7 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vbrl_ros.datasets.base import Scan, ScanSource, ScanSourceError
-from vbrl_ros.poses import read_poses_txt, write_poses_txt
+from vbrl_ros.datasets.poses import read_poses_txt, write_poses_txt
 
 
 def read_kitti_bin(path: Path) -> tuple[np.ndarray, np.ndarray]:

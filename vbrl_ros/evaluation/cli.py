@@ -160,8 +160,8 @@ def write_matches(path: Path, results: RetrievalResults, query_scans: np.ndarray
 
 def run(args: argparse.Namespace) -> int:
     from vbrl_ros.evaluation import headroom
+    from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
     from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod, describe_source
-    from vbrl_ros.scan_context import ScanContextConfig
 
     if not (math.isfinite(args.radius) and args.radius > 0):
         raise ValueError("--radius must be a positive number of metres")

@@ -23,15 +23,20 @@ import numpy as np
 from tqdm import tqdm
 
 from vbrl_ros.config import VBRLConfig
-from vbrl_ros.datasets import open_source
+from vbrl_ros.datasets.registry import open_source
 from vbrl_ros.evaluation.retrieval import DistancesFn
 from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.model.scoring import WeightedL1Scorer
-from vbrl_ros.scan_context import ScanContextConfig, ScanContextDatabase, scan_context
-from vbrl_ros.training.keyframes import _bounded_map, default_workers, select_keyframes, source_points
+from vbrl_ros.evaluation.baselines.scan_context import (
+    ScanContextConfig,
+    ScanContextDatabase,
+    scan_context,
+)
+from vbrl_ros.datasets.keyframe_selection import select_keyframes, source_points
+from vbrl_ros.features.parallel import bounded_map, default_workers
 
 __all__ = ["SourceDescriptors", "describe_source", "VBRLMethod", "ScanContextMethod",
            "scorer_top_k"]
@@ -97,7 +102,7 @@ def describe_source(
             else:
                 with ProcessPoolExecutor(workers, initializer=_init_worker,
                                          initargs=(config.to_dict(), asdict(sc_config))) as pool:
-                    for a, b in _bounded_map(pool, _describe, scans, 4 * workers):
+                    for a, b in bounded_map(pool, _describe, scans, 4 * workers):
                         vbrl.append(a), sc.append(b), bar.update()
         finally:
             bar.close()

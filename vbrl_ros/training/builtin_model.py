@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from vbrl_ros.config import VBRLConfig
+from vbrl_ros.features.parallel import featurize
 from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
 from vbrl_ros.training.fit import TrainingResult, fit_model
-from vbrl_ros.training.keyframes import featurize
 
 
 @dataclass(frozen=True)

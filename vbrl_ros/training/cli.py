@@ -22,13 +22,14 @@ from pathlib import Path
 import numpy as np
 
 from vbrl_ros.config import GRID_KINDS, VBRLConfig, VoxelGridConfig
-from vbrl_ros.datasets import open_source
+from vbrl_ros.datasets.keyframe_selection import select_keyframes, source_points
+from vbrl_ros.datasets.registry import open_source
 from vbrl_ros.features.featurizer import Featurizer
+from vbrl_ros.features.parallel import featurize
 from vbrl_ros.training import cv as cv_module
 from vbrl_ros.training import streaming
 from vbrl_ros.training.ablations import ABLATIONS, ablation_lambdas, ablation_path, sibling_path
 from vbrl_ros.training.fit import TrainingResult, fit_model
-from vbrl_ros.training.keyframes import featurize, select_keyframes, source_points
 from vbrl_ros.training.report import importance_report
 from vbrl_ros.training.targets import TARGETS, place_labels
 from vbrl_ros.training.threshold import recommend_threshold

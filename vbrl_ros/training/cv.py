@@ -33,6 +33,7 @@ from tqdm import tqdm
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.evaluation.methods import scorer_top_k
 from vbrl_ros.evaluation.metrics import evaluate_retrieval
+from vbrl_ros.evaluation.protocols import protocol_pairs
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.training.fit import fit_model
 
@@ -101,7 +102,7 @@ def _pooled_scores(model: VBRLModel, descriptors: np.ndarray, labels: np.ndarray
     scorer = model.scorer()
     X = scorer.compact(model.standardize(descriptors))
     hits, revisits, f1s = 0, 0, []
-    for q_rows, db_rows, limits in _protocol_pairs(labels, keyframe_index, source_of_row, exclude):
+    for q_rows, db_rows, limits in protocol_pairs(labels, keyframe_index, source_of_row, exclude):
         idx, dist, _ = scorer_top_k(X[q_rows], X[db_rows], scorer, 1, limits)
         m = evaluate_retrieval(positions[q_rows], positions[db_rows], idx, dist, radius, limits)
         if m.num_revisits:
@@ -109,24 +110,6 @@ def _pooled_scores(model: VBRLModel, descriptors: np.ndarray, labels: np.ndarray
             revisits += m.num_revisits
             f1s.append(m.max_f1)
     return hits, revisits, f1s
-
-
-def _protocol_pairs(labels, keyframe_index, source_of_row, exclude):
-    """(query rows, database rows, limits): P2 for each ordered scenario pair, else P1 per source."""
-    scenarios = np.unique(labels)
-    if len(scenarios) >= 2:
-        for a in scenarios:
-            for b in scenarios:
-                if a != b:
-                    yield np.flatnonzero(labels == b), np.flatnonzero(labels == a), None
-        return
-    for s in np.unique(source_of_row):
-        rows = np.flatnonzero(source_of_row == s)
-        rows = rows[np.argsort(keyframe_index[rows], kind="stable")]
-        ki = keyframe_index[rows]
-        # query i sees the keyframes of its source recorded >= exclude scans earlier
-        limits = np.searchsorted(ki, ki - exclude, side="right")
-        yield rows, rows, limits
 
 
 def cross_validate(

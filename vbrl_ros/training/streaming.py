@@ -41,20 +41,14 @@ import numpy as np
 from tqdm import tqdm
 
 from vbrl_ros.config import VBRLConfig
-from vbrl_ros.datasets import open_source
+from vbrl_ros.datasets.keyframe_selection import select_keyframes, source_points
+from vbrl_ros.datasets.registry import open_source
 from vbrl_ros.features.featurizer import Featurizer
+from vbrl_ros.features.parallel import bounded_map, default_workers, describe_in_worker, init_worker
 from vbrl_ros.model.gram import GramAccumulator, GramStats
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.model.solver import solve_vbrl
 from vbrl_ros.training.fit import MIN_FEATURE_SCALE, TrainingResult, pool_tied, row_groups
-from vbrl_ros.training.keyframes import (
-    _bounded_map,
-    _describe_in_worker,
-    _init_worker,
-    default_workers,
-    select_keyframes,
-    source_points,
-)
 
 DEFAULT_CHUNK = 512  # keyframes per Gram update: large enough for BLAS, small next to G
 
@@ -210,14 +204,14 @@ def stream_moments(
     moments = RawMoments(featurizer.dimension, len(scenario_names))
     info = StreamedSources(scenario_names)
     workers = default_workers() if workers is None else workers
-    pool = (ProcessPoolExecutor(workers, initializer=_init_worker, initargs=(config.to_dict(),))
+    pool = (ProcessPoolExecutor(workers, initializer=init_worker, initargs=(config.to_dict(),))
             if workers > 1 else None)
     try:
         for path, name in zip(paths, names):
             with open_source(path, topic=topic, poses=poses, progress=progress) as source:
                 indices = select_keyframes(source, distance=keyframe_distance, every=every)
                 scans = source_points(source, indices)
-                rows = (_bounded_map(pool, _describe_in_worker, scans, 4 * workers) if pool
+                rows = (bounded_map(pool, describe_in_worker, scans, 4 * workers) if pool
                         else map(featurizer.describe, scans))
                 bar = tqdm(total=len(indices), desc=f"streaming {source.name}", unit="scan",
                            disable=not progress, leave=False)

@@ -14,8 +14,8 @@ import numpy as np
 
 from vbrl_ros.evaluation.methods import scorer_top_k
 from vbrl_ros.evaluation.metrics import evaluate_retrieval, pr_curve
+from vbrl_ros.evaluation.protocols import protocol_pairs
 from vbrl_ros.model.model_file import VBRLModel
-from vbrl_ros.training.cv import _protocol_pairs
 
 
 def recommend_threshold(model: VBRLModel, descriptors: np.ndarray, labels: np.ndarray,
@@ -42,8 +42,8 @@ def recommend_threshold(model: VBRLModel, descriptors: np.ndarray, labels: np.nd
     X = scorer.compact(model.standardize(d))
     for protocol in protocols:
         dists, correct, revisits = [], [], 0
-        pairs = (_protocol_pairs(np.zeros(len(rows), int), ki, src, exclude) if protocol == "P1"
-                 else _protocol_pairs(lab, ki, src, exclude) if len(np.unique(lab)) >= 2 else ())
+        pairs = (protocol_pairs(np.zeros(len(rows), int), ki, src, exclude) if protocol == "P1"
+                 else protocol_pairs(lab, ki, src, exclude) if len(np.unique(lab)) >= 2 else ())
         for q_rows, db_rows, limits in pairs:
             idx, dist, _ = scorer_top_k(X[q_rows], X[db_rows], scorer, 1, limits)
             m = evaluate_retrieval(pos[q_rows], pos[db_rows], idx, dist, radius, limits)

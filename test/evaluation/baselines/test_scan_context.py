@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vbrl_ros.scan_context import (
+from vbrl_ros.evaluation.baselines.scan_context import (
     ScanContextConfig,
     ScanContextDatabase,
     ring_key,
@@ -20,7 +20,7 @@ from vbrl_ros.scan_context import (
 )
 
 CFG = ScanContextConfig()  # 20 x 60, 80 m -> rings 4 m, sectors 6 deg
-DATA = (Path(__file__).resolve().parents[1] / ".." / "shared" / "data").resolve()
+DATA = (Path(__file__).resolve().parents[3] / ".." / "shared" / "data").resolve()
 
 
 def _polar(r: float, deg: float, z: float) -> list[float]:

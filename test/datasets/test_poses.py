@@ -14,7 +14,7 @@ from vbrl_ros.datasets import open_source
 from vbrl_ros.datasets.kitti_style import write_kitti_style
 from vbrl_ros.io.bag_writer import write_scan_bag
 from vbrl_ros.io.pointcloud2 import split_stamp, to_rosbags_msg
-from vbrl_ros.poses import (
+from vbrl_ros.datasets.poses import (
     OutsidePoseRangeWarning,
     PoseSourceError,
     chain_tf,

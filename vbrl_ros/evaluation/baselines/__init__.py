@@ -1,0 +1,1 @@
+"""Place-recognition methods VBRL is compared with: :mod:`.scan_context`."""

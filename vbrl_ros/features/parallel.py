@@ -1,0 +1,92 @@
+"""Featurizing many scans in worker processes, in order, without reading ahead unboundedly.
+
+The caller's process reads the scans (I/O is sequential in bags) while worker
+processes describe them. :func:`init_worker` / :func:`describe_in_worker` are
+the workers' entry points for a ``ProcessPoolExecutor``; :func:`bounded_map`
+feeds one with at most so many scans in flight.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from vbrl_ros.config import VBRLConfig
+from vbrl_ros.features.featurizer import Featurizer
+
+_worker_featurizer: Featurizer | None = None
+
+
+def init_worker(config_dict: dict) -> None:
+    global _worker_featurizer
+    _worker_featurizer = Featurizer(VBRLConfig.from_dict(config_dict))
+
+
+def describe_in_worker(points: np.ndarray) -> np.ndarray:
+    assert _worker_featurizer is not None
+    return _worker_featurizer.describe(points)
+
+
+def default_workers() -> int:
+    return max(1, min(8, (os.cpu_count() or 1)))
+
+
+def featurize(
+    scans: Iterable[np.ndarray],
+    config: VBRLConfig,
+    *,
+    total: int | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+    description: str = "featurizing",
+) -> np.ndarray:
+    """Raw descriptors (n, d) float32 of the scans, computed in worker processes.
+
+    The caller's process reads the scans (I/O is sequential in bags) while
+    ``workers`` processes featurize them; results keep the input order.
+    """
+    workers = default_workers() if workers is None else workers
+    featurizer = Featurizer(config)
+    bar = tqdm(total=total, desc=description, unit="scan", disable=not progress, leave=False)
+    out: list[np.ndarray] = []
+    try:
+        if workers <= 1:
+            results: Iterator[np.ndarray] = map(featurizer.describe, scans)
+            for row in results:
+                out.append(row)
+                bar.update()
+        else:
+            with ProcessPoolExecutor(
+                workers, initializer=init_worker, initargs=(config.to_dict(),)
+            ) as pool:
+                for row in bounded_map(pool, describe_in_worker, scans, 4 * workers):
+                    out.append(row)
+                    bar.update()
+    finally:
+        bar.close()
+    if not out:
+        return np.zeros((0, featurizer.dimension), dtype=np.float32)
+    return np.stack(out)
+
+
+def bounded_map(
+    pool: ProcessPoolExecutor, fn: Callable[[Any], Any], items: Iterable[Any], in_flight: int
+) -> Iterator[Any]:
+    """Ordered ``pool.map`` that reads at most ``in_flight`` items ahead.
+
+    ``Executor.map`` submits the whole iterable at once, which would pull
+    every scan of a bag into memory before the first result comes back.
+    """
+    pending: deque[Future] = deque()
+    for item in items:
+        pending.append(pool.submit(fn, item))
+        if len(pending) >= in_flight:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()
