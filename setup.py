@@ -44,8 +44,8 @@ setup(
     zip_safe=True,
     entry_points={
         "console_scripts": [
-            "vbrl = vbrl_ros.cli:main",
-            "vbrl_node = vbrl_ros.node:main",
+            "vbrl = vbrl_ros.tools.cli:main",
+            "vbrl_node = vbrl_ros.ros.node:main",
         ],
     },
 )

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from vbrl_ros import bench_descriptors as bd
+from vbrl_ros.bench import descriptors as bd
+from vbrl_ros.bench.index import winter_comparison
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.index.state import INDEX_FORMAT_VERSION
-from vbrl_ros.index_bench import winter_comparison
 from vbrl_ros.model.distance_kernels import min_over_shifts
 from vbrl_ros.model.scoring import WeightedL1Scorer
 

@@ -23,9 +23,9 @@ from vbrl_ros.io.pointcloud2 import (
     read_structured,
     read_xyz_intensity,
     split_stamp,
-    to_ros_msg,
     to_rosbags_msg,
 )
+from vbrl_ros.ros.message_conversion import to_ros_msg
 
 STRUCT_CODE = {1: "b", 2: "B", 3: "h", 4: "H", 5: "i", 6: "I", 7: "f", 8: "d"}
 EXTRA_FIELD_NAMES = ["intensity", "ring", "time", "reflectivity", "ambient", "t"]

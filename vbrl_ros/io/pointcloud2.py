@@ -359,24 +359,6 @@ def split_stamp(stamp: Stamp) -> tuple[int, int]:
     return sec, nanosec
 
 
-def to_ros_msg(points: np.ndarray, field_names: Sequence[str] | None = None, *, stamp: Stamp = 0.0,
-               frame_id: str = "", **encode_options: Any) -> Any:
-    """Build an rclpy ``sensor_msgs.msg.PointCloud2`` (see :func:`encode_cloud`)."""
-    from sensor_msgs.msg import PointCloud2, PointField
-
-    cloud = encode_cloud(points, field_names, **encode_options)
-    msg = PointCloud2()
-    msg.header.stamp.sec, msg.header.stamp.nanosec = split_stamp(stamp)
-    msg.header.frame_id = frame_id
-    msg.height, msg.width = cloud.height, cloud.width
-    msg.fields = [PointField(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count) for f in cloud.fields]
-    msg.is_bigendian = cloud.is_bigendian
-    msg.point_step, msg.row_step = cloud.point_step, cloud.row_step
-    msg.data = cloud.data  # bytes: assigning a numpy array here is ~100x slower in rclpy
-    msg.is_dense = cloud.is_dense
-    return msg
-
-
 def to_rosbags_msg(points: np.ndarray, field_names: Sequence[str] | None = None, *, typestore: Any,
                    stamp: Stamp = 0.0, frame_id: str = "", **encode_options: Any) -> Any:
     """Build a rosbags ``sensor_msgs/msg/PointCloud2`` of ``typestore`` (ROS 1 or ROS 2)."""

@@ -14,8 +14,8 @@ evaluation on known ground truth)::
 
 Modules: :mod:`.geometry` (ray-primitive intersection), :mod:`.town`,
 :mod:`.scene` (nearest-hit ray cast), :mod:`.route`, :mod:`.lidar` (sensor model, culling, rendering),
-:mod:`.scenarios` (season / weather / traffic), :mod:`.run` (lazy sessions),
-:mod:`.cli` (``vbrl simulate``).
+:mod:`.scenarios` (season / weather / traffic), :mod:`.run` (lazy sessions);
+``vbrl simulate`` is :mod:`vbrl_ros.tools.simulate`.
 """
 
 from .geometry import Boxes, Cylinders, Ellipsoids, Material, PrimitiveKind

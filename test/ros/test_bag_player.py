@@ -1,6 +1,6 @@
 """``vbrl replay`` over real DDS: the player runs in a subprocess, this process subscribes with rclpy.
 
-Every test gets its own ROS domain (vbrl_ros.ros_testing), so tests and
+Every test gets its own ROS domain (vbrl_ros.ros.testing), so tests and
 xdist workers never hear each other. The player waits for our subscriptions
 (``--wait-for-subscribers``) instead of the tests sleeping for discovery.
 """
@@ -26,18 +26,19 @@ from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 
-from vbrl_ros import ros_testing  # noqa: E402
 from vbrl_ros.io.bag_writer import write_scan_bag  # noqa: E402
 from vbrl_ros.io.pointcloud2 import read_xyz_intensity, split_stamp  # noqa: E402
-from vbrl_ros.replay import BagPlayer, ReplayError, parse_remap  # noqa: E402
-from vbrl_ros.replay import main as replay_main  # noqa: E402
-from vbrl_ros.ros_testing import (  # noqa: E402
+from vbrl_ros.ros import testing as ros_testing  # noqa: E402
+from vbrl_ros.ros.bag_player import BagPlayer, ReplayError  # noqa: E402
+from vbrl_ros.ros.testing import (  # noqa: E402
     MessageCollector,
     collect_messages,
     isolated_ros_env,
     ros_context,
     unique_domain_id,
 )
+from vbrl_ros.tools.replay import main as replay_main  # noqa: E402
+from vbrl_ros.tools.replay import parse_remap  # noqa: E402
 
 FORMATS = {"mcap": ({}, "bag"), "sqlite3": ({"storage": "sqlite3"}, "bag"), "ros1": ({"ros1": True}, "run.bag")}
 T0 = 1_700_000_000.0
@@ -69,7 +70,7 @@ def start_replay(bag: Path, env: dict[str, str], *args: str) -> subprocess.Popen
     # --wait-for-subscribers sees the writer match our reader; the reader may match the writer
     # later, and samples sent in between then arrive in one burst (eleven clouds within 6 ms at
     # 1x, once, on a loaded machine), or not before the replay exits. Half a second covers that.
-    return subprocess.Popen([sys.executable, "-m", "vbrl_ros.replay", str(bag), "--quiet", "--delay", "0.5",
+    return subprocess.Popen([sys.executable, "-m", "vbrl_ros.tools.replay", str(bag), "--quiet", "--delay", "0.5",
                              *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -175,7 +176,7 @@ def test_sigint_during_a_loop_shuts_down_cleanly(tmp_path: Path, ros) -> None:
 def test_bad_input_is_one_line_and_exit_code_2(args: list[str], message: str, tmp_path: Path) -> None:
     bag, *_ = make_bag(tmp_path / "bag", 3, 0.1)
     argv = [arg.format(bag=bag, missing=tmp_path / "missing") for arg in args]
-    result = subprocess.run([sys.executable, "-m", "vbrl_ros.replay", *argv, "--quiet"], env=isolated_ros_env(),
+    result = subprocess.run([sys.executable, "-m", "vbrl_ros.tools.replay", *argv, "--quiet"], env=isolated_ros_env(),
                             capture_output=True, text=True, timeout=TIMEOUT)
     assert result.returncode == 2 and result.stdout == ""
     assert result.stderr.startswith("vbrl replay: error: ") and result.stderr.count("\n") == 1, result.stderr

@@ -2,7 +2,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from vbrl_ros.detection.detector import LoopClosure
-from vbrl_ros.ros_messages import CLOSURE_COLUMNS, closures_message, lio_sam_message, parse_closures
+from vbrl_ros.ros.messages import CLOSURE_COLUMNS, closures_message, lio_sam_message, parse_closures
 
 
 def closure(verified: bool) -> LoopClosure:

@@ -1,27 +1,16 @@
-"""``vbrl bench``: the speed targets of DESIGN.md §5, measured and printed as a table.
+"""The featurizer's and the solver's speed targets (docs/design.md §5), measured.
 
-Figures are medians over repeated runs in one process, so compare ratios
-within one run rather than absolute times across machines. The featurizer runs
-on one core (a compiled single pass plus numpy; its JIT compile is excluded by
-the warm-up runs); the solver uses whatever BLAS threads numpy has (the table
-says how many). The keyframe index section (:mod:`vbrl_ros.index_bench`:
-query + insert at ``--sizes`` keyframes, indexed vs brute force, Recall@1 vs
-brute force, bytes per keyframe, pruning) runs single-threaded kernels; its
-figures are under ``"index"`` in the ``--json`` output. The whole run takes
-about three minutes at the default sizes (most of it building the 100k
-databases and the brute-force references). Its polar rows use a stand-in for
-a trained polar model unless ``--polar-model`` names one.
+Figures are medians over repeated runs in one process; :func:`format_table`
+prints them beside their targets. ``vbrl bench`` runs this and
+:mod:`vbrl_ros.bench.index`.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import platform
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -61,7 +50,7 @@ def benchmark_scan(n_points: int = BENCH_POINTS, seed: int = 0) -> np.ndarray:
 
 
 def measure(repeats: int = 30, config: VBRLConfig | None = None) -> dict[str, Any]:
-    from vbrl_ros.solver_bench import time_one_iteration
+    from vbrl_ros.bench.solver import time_one_iteration
 
     featurizer = Featurizer(config)
     scan = benchmark_scan()
@@ -110,57 +99,3 @@ def _blas_threads() -> str:
     return "library default"
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "bench", help="measure the speed targets and print a table",
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument("--repeats", type=int, default=30, help="timed runs per figure (default 30)")
-    parser.add_argument("--json", type=Path, metavar="FILE", help="also write the figures as JSON")
-    parser.add_argument(
-        "--sizes", type=_sizes, default=(1_000, 10_000, 100_000), metavar="N,N,...",
-        help="keyframe database sizes of the index section (default 1000,10000,100000; "
-             "'' skips it)",
-    )
-    parser.add_argument(
-        "--polar-model", type=Path, metavar="MODEL",
-        help="a trained polar model (vbrl train --grid polar) for the index section's polar rows; "
-             "default: a stand-in derived from the built-in Cartesian model",
-    )
-    parser.set_defaults(func=run)
-
-
-def _sizes(text: str) -> tuple[int, ...]:
-    try:
-        sizes = tuple(int(part) for part in text.split(",") if part.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-    if any(n < 10 for n in sizes):
-        raise argparse.ArgumentTypeError(f"sizes must be >= 10 keyframes, got {text!r}")
-    return tuple(sorted(set(sizes)))
-
-
-def run(args: argparse.Namespace) -> int:
-    from vbrl_ros import index_bench
-
-    if args.repeats < 1:
-        raise ValueError("--repeats must be >= 1")
-    polar_model = None
-    if args.polar_model is not None:  # checked before the long first section
-        from vbrl_ros.bench_descriptors import require_polar
-        from vbrl_ros.model.model_file import load_model
-
-        polar_model = load_model(args.polar_model)
-        require_polar(polar_model, f"{args.polar_model}: --polar-model")
-    results = measure(repeats=args.repeats)
-    print(format_table(results), flush=True)
-    if args.sizes:
-        results["index"] = index_bench.measure(
-            args.sizes, repeats=max(args.repeats, 20), polar_model=polar_model,
-            polar_model_name=None if args.polar_model is None else str(args.polar_model))
-        print()
-        print(index_bench.format_table(results["index"]))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=2))
-    return 0

@@ -19,8 +19,7 @@ from pathlib import Path
 
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
-from vbrl_ros.training.builtin_model import SimulatedTrainingSpec, build_default_model
-from vbrl_ros.training.builtin_model import simulated_training_data
+from vbrl_ros.training.builtin_model import SimulatedTrainingSpec, build_default_model, simulated_training_data
 from vbrl_ros.training.fit import fit_model
 from vbrl_ros.training.report import importance_report
 from vbrl_ros.training.threshold import recommend_threshold
@@ -67,9 +66,9 @@ def train(out_dir: Path, progress: bool) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vbrl_ros.online_session import precision_recall, revisit_stamps, run_node_session
-    from vbrl_ros.online_session import simulate_session_bags
-    from vbrl_ros.ros_testing import isolated_ros_env, ros_context
+    from vbrl_ros.ros.online_session import precision_recall, revisit_stamps, run_node_session
+    from vbrl_ros.ros.online_session import simulate_session_bags
+    from vbrl_ros.ros.testing import isolated_ros_env, ros_context
 
     progress = not args.quiet
     if args.rebuild_default_model:

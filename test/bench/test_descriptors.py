@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from vbrl_ros import bench_descriptors as bd
+from vbrl_ros.bench import descriptors as bd
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
 from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.model.builtin import load_default_model

@@ -15,10 +15,10 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from vbrl_ros.io.pointcloud2 import to_ros_msg  # noqa: E402
-from vbrl_ros.ros_testing import MessageCollector, isolated_ros_env, ros_context  # noqa: E402
+from vbrl_ros.ros.message_conversion import to_ros_msg  # noqa: E402
+from vbrl_ros.ros.testing import MessageCollector, isolated_ros_env, ros_context  # noqa: E402
 
-NODE = [sys.executable, "-m", "vbrl_ros.node"]
+NODE = [sys.executable, "-m", "vbrl_ros.ros.node"]
 
 
 def node_command(*params: str) -> list[str]:

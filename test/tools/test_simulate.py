@@ -6,11 +6,11 @@ import json
 import numpy as np
 import pytest
 
-from vbrl_ros.simulator import cli
 from vbrl_ros.simulator.lidar import LidarConfig
 from vbrl_ros.simulator.route import RouteConfig, make_route
 from vbrl_ros.simulator.run import simulate_run
 from vbrl_ros.simulator.town import TownConfig, generate_town
+from vbrl_ros.tools import simulate as cli
 
 TINY = ["--blocks", "2", "2", "--beams", "16", "--columns", "360", "--scans", "4", "--spacing", "3",
         "--no-progress"]

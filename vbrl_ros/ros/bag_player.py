@@ -1,4 +1,4 @@
-"""``vbrl replay BAG``: publish a bag's clouds, odometry and poses over ROS 2, paced like the recording.
+"""The bag player behind ``vbrl replay``: a bag's topics over ROS 2, paced like the recording.
 
 A stand-in for ``ros2 bag play`` that needs only the pip-installed rclpy. It
 reads any bag :class:`~vbrl_ros.datasets.rosbag.RosbagSource` reads (ROS 2
@@ -32,21 +32,17 @@ its newest value matters.
 
 from __future__ import annotations
 
-import argparse
-import importlib
 import math
-import signal
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
+from vbrl_ros.ros.message_conversion import CLOUD_TYPE, MessageTypeError, converter_for, message_class
 
 # Heavy modules (rclpy, rosbags, vbrl_ros.datasets which pulls scipy) are imported where used:
 # ``vbrl --help`` imports this module.
-CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 DEFAULT_TYPES = (CLOUD_TYPE, "nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped",
                  "geometry_msgs/msg/PoseWithCovarianceStamped")
 CLOCK_TOPIC = "/clock"  # remap it like any topic: {"/clock": "/sim_clock"}
@@ -57,61 +53,6 @@ FINAL_ACK_TIMEOUT = 0.5  # seconds, at most, to wait for the last samples' ackno
 
 class ReplayError(ValueError):
     """The bag, a topic or an option cannot be replayed as asked (one line, for the CLI)."""
-
-
-# --------------------------------------------------------------------------- message conversion
-
-
-def _message_class(msgtype: str) -> type:
-    """``"nav_msgs/msg/Odometry"`` -> the rclpy class, or a ReplayError if its package is missing."""
-    package, _, name = msgtype.rpartition("/")
-    try:
-        return getattr(importlib.import_module(package.replace("/", ".")), name)
-    except (ImportError, AttributeError):
-        raise ReplayError(f"message type {msgtype} is not installed in this Python environment") from None
-
-
-def _copy_into(dst: Any, src: Any) -> Any:
-    """Copy a rosbags message into an rclpy message field by field (ROS 1 ``seq`` and other extras are dropped)."""
-    import numpy as np
-    from rosidl_parser.definition import AbstractNestedType, NamespacedType
-
-    for name, slot in zip(dst.get_fields_and_field_types(), dst.SLOT_TYPES):
-        value = getattr(src, name)
-        if isinstance(slot, NamespacedType):
-            _copy_into(getattr(dst, name), value)
-        elif isinstance(slot, AbstractNestedType) and isinstance(slot.value_type, NamespacedType):
-            element = _message_class("/".join((*slot.value_type.namespaces, slot.value_type.name)))
-            setattr(dst, name, [_copy_into(element(), item) for item in value])
-        elif isinstance(value, np.ndarray) and value.dtype == np.uint8:
-            setattr(dst, name, value.tobytes())  # bytes: numpy into rclpy uint8[] is ~200x slower
-        else:
-            setattr(dst, name, value)
-    return dst
-
-
-def _cloud_to_rclpy(src: Any) -> Any:
-    """The hot path: PointCloud2 without per-field introspection, ``data`` as one bytes copy."""
-    import numpy as np
-    from sensor_msgs.msg import PointCloud2, PointField
-
-    msg = PointCloud2()
-    msg.header.stamp.sec, msg.header.stamp.nanosec = int(src.header.stamp.sec), int(src.header.stamp.nanosec)
-    msg.header.frame_id = src.header.frame_id
-    msg.height, msg.width = int(src.height), int(src.width)
-    msg.fields = [PointField(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count) for f in src.fields]
-    msg.is_bigendian, msg.is_dense = bool(src.is_bigendian), bool(src.is_dense)
-    msg.point_step, msg.row_step = int(src.point_step), int(src.row_step)
-    msg.data = np.asarray(src.data, dtype=np.uint8).tobytes()
-    return msg
-
-
-def converter_for(msgtype: str) -> Callable[[Any], Any]:
-    """A function turning a rosbags-deserialised ``msgtype`` into the matching rclpy message."""
-    if msgtype == CLOUD_TYPE:
-        return _cloud_to_rclpy
-    cls = _message_class(msgtype)
-    return lambda src: _copy_into(cls(), src)
 
 
 # --------------------------------------------------------------------------- statistics
@@ -177,7 +118,10 @@ class BagPlayer:
         self.topics = self._select_topics(topics)
         self.msgtypes = {topic: self._reader.topics[topic].msgtype for topic in self.topics}
         self.outputs = self._resolve_remaps(remaps or {})
-        self._converters = {topic: converter_for(msgtype) for topic, msgtype in self.msgtypes.items()}
+        try:
+            self._converters = {topic: converter_for(msgtype) for topic, msgtype in self.msgtypes.items()}
+        except MessageTypeError as error:
+            raise ReplayError(str(error)) from None
         self._connections = [c for c in self._reader.connections if c.topic in self.msgtypes]
         self.start_ns = self._reader.start_time + round(start_offset * 1e9)
         if self.start_ns >= self._reader.end_time:
@@ -264,7 +208,7 @@ class BagPlayer:
             publishers = {}
             for topic in self.topics:
                 sensor = self.cloud_qos == "sensor" and self.msgtypes[topic] == CLOUD_TYPE
-                publishers[topic] = node.create_publisher(_message_class(self.msgtypes[topic]), self.outputs[topic],
+                publishers[topic] = node.create_publisher(message_class(self.msgtypes[topic]), self.outputs[topic],
                                                           qos_profile_sensor_data if sensor else reliable)
             clock = None
             if self.clock_topic:
@@ -385,106 +329,3 @@ class BagPlayer:
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
-
-
-# --------------------------------------------------------------------------- command line
-
-
-def parse_remap(text: str) -> tuple[str, str]:
-    """``"/points:=/velodyne_points"`` -> ("/points", "/velodyne_points")."""
-    source, sep, target = text.partition(":=")
-    if not sep or not source or not target:
-        raise argparse.ArgumentTypeError(f"remap must look like /from:=/to, got {text!r}")
-    return source, target
-
-
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``replay`` to the ``vbrl`` command."""
-    parser = subparsers.add_parser("replay", help="publish a bag's clouds, odometry and /clock over ROS 2",
-                                   description="Publish a bag's clouds, odometry and poses (and /clock) "
-                                   "over ROS 2, paced like the recording. Needs no ros2 bag.")
-    add = parser.add_argument
-    add("bag", type=Path, help="ROS 2 bag directory (mcap/sqlite3), its file, or a ROS 1 .bag")
-    add("--topics", nargs="+", metavar="TOPIC", help="bag topics to publish (default: clouds, odometry, poses)")
-    add("--rate", type=float, default=1.0, help="speed factor over real time (default 1)")
-    add("--start-offset", type=float, default=0.0, metavar="S", help="skip the bag's first S s")
-    add("--duration", type=float, metavar="S", help="play only S s of bag time")
-    add("--loop", action="store_true", help="play again and again until Ctrl-C")
-    add("--delay", type=float, default=0.0, metavar="S", help="wait S s before the first message (discovery)")
-    add("--wait-for-subscribers", type=int, default=0, metavar="N",
-        help="first wait until each published topic (not the clock) has N subscribers")
-    add("--wait-topics", nargs="+", metavar="TOPIC", help="only these published topics need the N subscribers")
-    add("--wait-timeout", type=float, default=30.0, metavar="S", help="fail (exit 2) after S s of waiting")
-    add("--remap", type=parse_remap, action="append", default=[], metavar="FROM:=TO",
-        help="publish bag topic (or /clock) FROM as TO, e.g. /points:=/velodyne_points; repeatable")
-    add("--qos", choices=QOS_CHOICES, default="reliable",
-        help="clouds reliable (default: loss-free for evaluation, sensor-data subscribers still match) or "
-             "sensor data (best effort, depth 5)")
-    add("--clock-hz", type=float, default=40.0, help="clock ticks per wall second between messages (0: none)")
-    add("--no-clock", action="store_true", help="do not publish /clock")
-    add("--quiet", action="store_true", help="no progress bar")
-    parser.set_defaults(func=run)
-
-
-class _Interrupts:
-    """SIGINT/SIGTERM stop the replay at the next message boundary instead of raising mid-call.
-
-    A KeyboardInterrupt raised inside a DDS call (a publish holding rclpy's
-    handle lock) can leave teardown waiting on that lock, so the first signal
-    only sets ``stop`` — from a helper thread, since ``Event.set`` in a handler
-    can deadlock on the lock the interrupted main thread holds. A second
-    Ctrl-C interrupts at once, as usual.
-    """
-
-    def __init__(self, stop: threading.Event) -> None:
-        self.stop, self.received, self._previous = stop, False, {}
-
-    def __enter__(self) -> _Interrupts:
-        if threading.current_thread() is threading.main_thread():
-            self._previous = {sig: signal.signal(sig, self._handle) for sig in (signal.SIGINT, signal.SIGTERM)}
-        return self
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        self.received = True
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-        threading.Thread(target=self.stop.set, daemon=True).start()
-
-    def __exit__(self, *exc: Any) -> None:
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-
-
-def run(args: argparse.Namespace) -> int:
-    """Replay as the parsed ``args`` say; 0 when done, 130 when interrupted (bad input raises ReplayError)."""
-    with BagPlayer(args.bag, topics=args.topics, rate=args.rate, start_offset=args.start_offset,
-                   duration=args.duration, loop=args.loop, remaps=dict(args.remap), cloud_qos=args.qos,
-                   clock=not args.no_clock, clock_hz=args.clock_hz) as player:
-        print(f"replaying {player.total} messages from {args.bag} ({', '.join(player.topics)}) "
-              f"at {args.rate:g}x", file=sys.stderr, flush=True)
-        # SIGTERM (e.g. a test harness or launch stopping us) takes the same orderly path as Ctrl-C.
-        with _Interrupts(threading.Event()) as interrupts:
-            try:
-                player.play(delay=args.delay, wait_for_subscribers=args.wait_for_subscribers,
-                            wait_topics=args.wait_topics, wait_timeout=args.wait_timeout,
-                            progress=False if args.quiet else None, stop=interrupts.stop)
-            except KeyboardInterrupt:  # a second Ctrl-C
-                interrupts.received = True
-        if interrupts.received:
-            print(f"interrupted: {player.stats.summary(args.rate)}", flush=True)
-            return 130
-        print(player.stats.summary(args.rate), flush=True)
-    return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m vbrl_ros.replay BAG ...``: the ``vbrl replay`` subcommand on its own."""
-    parser = argparse.ArgumentParser(prog="vbrl")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(["replay", *(sys.argv[1:] if argv is None else argv)])
-    from vbrl_ros.cli import run_parsed
-
-    return run_parsed(args)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

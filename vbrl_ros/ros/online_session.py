@@ -32,7 +32,7 @@ class SessionBag:
 
 @dataclass
 class SessionResult:
-    closures: list[dict]  # rows of the loop-closure message (see ros_messages)
+    closures: list[dict]  # rows of the loop-closure message (see vbrl_ros.ros.messages)
     stats: dict[str, str]  # the node's last diagnostics values
     markers: object | None  # the last visualization_msgs/MarkerArray, if any
     node_output: str
@@ -77,22 +77,22 @@ def run_node_session(
     from std_msgs.msg import Float64MultiArray
     from visualization_msgs.msg import MarkerArray
 
-    from vbrl_ros.ros_messages import parse_closures
-    from vbrl_ros.ros_testing import MessageCollector
+    from vbrl_ros.ros.messages import parse_closures
+    from vbrl_ros.ros.testing import MessageCollector
 
     probe = rclpy.create_node("vbrl_session_probe", context=context)
     collector = MessageCollector(probe, {CLOSURE_TOPIC: Float64MultiArray, "/diagnostics": DiagnosticArray,
                                          MARKER_TOPIC: MarkerArray})
     params = ("odom_topic:=/odom", f"database_path:={database}", "diagnostics_period:=0.5", *node_params)
     node = subprocess.Popen(
-        [sys.executable, "-m", "vbrl_ros.node", "--ros-args", *[a for p in params for a in ("-p", p)]],
+        [sys.executable, "-m", "vbrl_ros.ros.node", "--ros-args", *[a for p in params for a in ("-p", p)]],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
     try:
         if not collector.wait_for({"/diagnostics": 1}, timeout=60):
             raise RuntimeError("vbrl_node did not come up")
         player = subprocess.Popen(
-            [sys.executable, "-m", "vbrl_ros.replay", str(bag), "--rate", str(rate), "--quiet",
+            [sys.executable, "-m", "vbrl_ros.tools.replay", str(bag), "--rate", str(rate), "--quiet",
              "--wait-for-subscribers", "1", "--wait-topics", "/points", "/odom"],
             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         )

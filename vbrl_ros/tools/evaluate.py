@@ -34,8 +34,8 @@ from vbrl_ros.evaluation.metrics import (
 from vbrl_ros.evaluation.retrieval import RetrievalResults, cross_session_retrieval, online_retrieval
 from vbrl_ros.io.atomic import atomic_write
 from vbrl_ros.model.model_file import VBRLModel, load_model
+from vbrl_ros.tools.options import add_keyframe_arguments, add_source_arguments
 from vbrl_ros.training.ablations import FULL_NAME, discover_ablations
-from vbrl_ros.training.cli import add_keyframe_arguments, add_source_arguments
 
 TOP_K = 5  # Recall@5
 REPORT_RADII = (3.0, 5.0)  # DESIGN.md §3: report 3 m and 5 m

@@ -16,16 +16,11 @@ descriptors are never held: :mod:`.streaming`.
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from vbrl_ros.config import GRID_KINDS, VBRLConfig, VoxelGridConfig
-from vbrl_ros.datasets.keyframe_selection import select_keyframes, source_points
-from vbrl_ros.datasets.registry import open_source
 from vbrl_ros.features.featurizer import Featurizer
-from vbrl_ros.features.parallel import featurize
+from vbrl_ros.tools.options import add_keyframe_arguments, add_source_arguments, float_list
 from vbrl_ros.training import cv as cv_module
 from vbrl_ros.training import streaming
 from vbrl_ros.training.ablations import ABLATIONS, ablation_lambdas, ablation_path, sibling_path
@@ -33,95 +28,7 @@ from vbrl_ros.training.fit import TrainingResult, fit_model
 from vbrl_ros.training.report import importance_report
 from vbrl_ros.training.targets import TARGETS, place_labels
 from vbrl_ros.training.threshold import recommend_threshold
-
-
-@dataclass
-class TrainingData:
-    """Raw descriptors of the keyframes of several sources, with their scenario labels."""
-
-    descriptors: np.ndarray  # (n, d) float32
-    labels: np.ndarray  # (n,) scenario index
-    scenario_names: list[str]
-    positions: np.ndarray  # (n, 3), NaN where unknown
-    source_of_row: np.ndarray  # (n,) index into the sources
-    keyframe_index: np.ndarray  # (n,) scan index inside its source
-
-
-def add_keyframe_arguments(parser: argparse.ArgumentParser) -> None:
-    """--keyframe-distance / --every, shared by the commands that select keyframes."""
-    selection = parser.add_mutually_exclusive_group()
-    selection.add_argument("--keyframe-distance", type=float, metavar="M",
-                           help="one keyframe every M metres of travel (needs poses)")
-    selection.add_argument("--every", type=int, metavar="N", help="one keyframe every N scans")
-
-
-def add_source_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options shared by every command that reads scan sources."""
-    parser.add_argument("--topic", help="PointCloud2 topic in bags (default: the only one)")
-    parser.add_argument(
-        "--poses", default="auto",
-        help="where poses come from: auto | none | kiss-icp | odom:/topic | pose:/topic | "
-             "tf:parent:child | file:poses.txt (default: auto = the data's own)",
-    )
-    parser.add_argument("--workers", type=int, default=None,
-                        help="featurization processes (default: one per CPU)")
-
-
-def source_labels(paths: list[Path], labels: list[str] | None) -> list[str]:
-    """Scenario label of each source: ``labels`` or the file/folder name."""
-    if labels is not None and len(labels) != len(paths):
-        raise ValueError(f"--labels needs one label per source ({len(paths)}), got {len(labels)}")
-    return labels or [Path(p).stem if Path(p).is_file() else Path(p).name for p in paths]
-
-
-def load_training_data(
-    paths: list[Path],
-    config: VBRLConfig,
-    *,
-    labels: list[str] | None,
-    topic: str | None,
-    poses: str,
-    keyframe_distance: float | None,
-    every: int | None,
-    workers: int | None,
-    progress: bool = True,
-) -> TrainingData:
-    names = source_labels(paths, labels)
-    scenario_names = list(dict.fromkeys(names))  # sources with the same label share a scenario
-    rows, label_rows, positions, source_rows, index_rows = [], [], [], [], []
-    for k, (path, name) in enumerate(zip(paths, names)):
-        with open_source(path, topic=topic, poses=poses, progress=progress) as source:
-            indices = select_keyframes(source, distance=keyframe_distance, every=every)
-            descriptors = featurize(
-                source_points(source, indices), config, total=len(indices), workers=workers,
-                progress=progress, description=f"featurizing {source.name}",
-            )
-            rows.append(descriptors)
-            label_rows.append(np.full(len(indices), scenario_names.index(name)))
-            source_rows.append(np.full(len(indices), k))
-            index_rows.append(indices)
-            if source.poses is None:
-                positions.append(np.full((len(indices), 3), np.nan))
-            else:
-                positions.append(source.poses[indices, :3, 3])
-    return TrainingData(
-        descriptors=np.concatenate(rows),
-        labels=np.concatenate(label_rows),
-        scenario_names=scenario_names,
-        positions=np.concatenate(positions),
-        source_of_row=np.concatenate(source_rows),
-        keyframe_index=np.concatenate(index_rows),
-    )
-
-
-def _float_list(text: str) -> tuple[float, ...]:
-    try:
-        values = tuple(float(v) for v in text.split(",") if v.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
-    if not values or any(v < 0 or v != v for v in values):
-        raise argparse.ArgumentTypeError(f"expected non-negative numbers, got {text!r}")
-    return values
+from vbrl_ros.training.training_data import load_training_data, source_labels
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -162,9 +69,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     cv.add_argument("--cv", type=int, metavar="K",
                     help="choose (λ1, λ2) by K-fold place-disjoint cross-validation (overrides "
                          "--lambda1/--lambda2; needs poses in one world frame)")
-    cv.add_argument("--lambda1-grid", type=_float_list, default=cv_module.DEFAULT_LAMBDA1_GRID,
+    cv.add_argument("--lambda1-grid", type=float_list, default=cv_module.DEFAULT_LAMBDA1_GRID,
                     metavar="A,B,...", help="λ1 values to try (0,1,10,100)")
-    cv.add_argument("--lambda2-grid", type=_float_list, default=cv_module.DEFAULT_LAMBDA2_GRID,
+    cv.add_argument("--lambda2-grid", type=float_list, default=cv_module.DEFAULT_LAMBDA2_GRID,
                     metavar="A,B,...", help="λ2 values to try (0,0.01,0.1,1)")
     cv.add_argument("--radius", type=float, default=3.0,
                     help="revisit radius in metres for cross-validation and the threshold (3)")

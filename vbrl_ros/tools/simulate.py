@@ -14,11 +14,11 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from .lidar import LidarConfig
-from .route import RouteConfig, make_route
-from .run import SimulatedRun, simulate_run
-from .scenarios import FOLIAGE_DENSITY, SCENARIO_PRESETS, WEATHER, Scenario
-from .town import TownConfig, generate_town
+from vbrl_ros.simulator.lidar import LidarConfig
+from vbrl_ros.simulator.route import RouteConfig, make_route
+from vbrl_ros.simulator.run import SimulatedRun, simulate_run
+from vbrl_ros.simulator.scenarios import FOLIAGE_DENSITY, SCENARIO_PRESETS, WEATHER, Scenario
+from vbrl_ros.simulator.town import TownConfig, generate_town
 
 FORMATS = ("mcap", "sqlite3", "ros1", "kitti")
 

@@ -14,12 +14,12 @@ from collections.abc import Sequence
 
 # Order is the order ``vbrl --help`` lists them.
 SUBCOMMANDS: tuple[str, ...] = (
-    "vbrl_ros.demo",
-    "vbrl_ros.training.cli",
-    "vbrl_ros.evaluation.cli",
-    "vbrl_ros.simulator.cli",
-    "vbrl_ros.replay",
-    "vbrl_ros.bench",
+    "vbrl_ros.tools.demo",
+    "vbrl_ros.tools.train",
+    "vbrl_ros.tools.evaluate",
+    "vbrl_ros.tools.simulate",
+    "vbrl_ros.tools.replay",
+    "vbrl_ros.tools.bench",
 )
 
 

@@ -36,9 +36,9 @@ from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
 from vbrl_ros.model.builtin import load_default_model
 from vbrl_ros.model.model_file import ModelFileError, load_model
-from vbrl_ros.node_outputs import NodeStats, diagnostics_status, keyframe_markers
-from vbrl_ros.node_settings import NodeSettings, SettingsError
-from vbrl_ros.ros_messages import closures_message, lio_sam_message
+from vbrl_ros.ros.messages import closures_message, lio_sam_message
+from vbrl_ros.ros.outputs import NodeStats, diagnostics_status, keyframe_markers
+from vbrl_ros.ros.settings import NodeSettings, SettingsError
 
 
 def stamp_seconds(stamp) -> float:

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vbrl_ros import cli
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
 from vbrl_ros.evaluation import evaluate_matches_file
 from vbrl_ros.model.model_file import load_model
+from vbrl_ros.tools import cli
 from vbrl_ros.training.ablations import ablation_path
 
 sim = pytest.importorskip("vbrl_ros.simulator")
@@ -22,7 +22,7 @@ METRICS = ("max_f1", "average_precision", "recall_at_100_precision", "recall_at_
 
 
 def vbrl(monkeypatch: pytest.MonkeyPatch, *argv) -> int:
-    monkeypatch.setattr(cli, "SUBCOMMANDS", ("vbrl_ros.training.cli", "vbrl_ros.evaluation.cli"))
+    monkeypatch.setattr(cli, "SUBCOMMANDS", ("vbrl_ros.tools.train", "vbrl_ros.tools.evaluate"))
     return cli.main([str(a) for a in argv])
 
 

@@ -17,13 +17,13 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from vbrl_ros.online_session import (  # noqa: E402
+from vbrl_ros.ros.online_session import (  # noqa: E402
     precision_recall,
     revisit_stamps,
     run_node_session,
     simulate_session_bags,
 )
-from vbrl_ros.ros_testing import isolated_ros_env, ros_context  # noqa: E402
+from vbrl_ros.ros.testing import isolated_ros_env, ros_context  # noqa: E402
 
 SPACING_M = 2.0
 NODE_PARAMS = (f"keyframe_distance:={0.75 * SPACING_M}",)  # every scan (spacing is not exact)

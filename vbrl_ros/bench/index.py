@@ -1,7 +1,7 @@
 """``vbrl bench`` index section: query + insert at 1k / 10k / 100k keyframes (DESIGN.md §5).
 
 For the Cartesian descriptor (default model, d ~ 7.9k, S = 1) and a polar one
-(S = 24, d ~ 15.7k active; see :mod:`vbrl_ros.bench_descriptors` for how it
+(S = 24, d ~ 15.7k active; see :mod:`vbrl_ros.bench.descriptors` for how it
 is made without a trained polar model) and both storages, a database is grown
 to each size from real simulated descriptors (:func:`replicate`) and timed:
 
@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from vbrl_ros import bench_descriptors as bd
+from vbrl_ros.bench import descriptors as bd
 from vbrl_ros.detection.database import KeyframeDatabase
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.parameters import IndexParameters

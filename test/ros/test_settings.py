@@ -3,9 +3,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from vbrl_ros.node_settings import NodeSettings, SettingsError
+from vbrl_ros.ros.settings import NodeSettings, SettingsError
 
-CONFIG = Path(__file__).resolve().parents[1] / "config" / "vbrl.yaml"
+CONFIG = Path(__file__).resolve().parents[2] / "config" / "vbrl.yaml"
 
 
 def test_yaml_defaults_equal_the_code_defaults():

@@ -1,4 +1,4 @@
-from vbrl_ros.solver_bench import time_gram_training, time_one_iteration
+from vbrl_ros.bench.solver import time_gram_training, time_one_iteration
 
 
 def test_time_one_iteration_small():

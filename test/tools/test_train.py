@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vbrl_ros import cli
 from vbrl_ros.model.model_file import load_model
+from vbrl_ros.tools import cli
 from vbrl_ros.training.ablations import ABLATIONS, ablation_path
 
 sim = pytest.importorskip("vbrl_ros.simulator")
@@ -33,7 +33,7 @@ def simulate(folder: Path, spacing: float = 6.0) -> list[Path]:
 
 def vbrl(monkeypatch: pytest.MonkeyPatch, *argv: str) -> int:
     """``vbrl`` (the real main, its error handling) with only the subcommands under test."""
-    monkeypatch.setattr(cli, "SUBCOMMANDS", ("vbrl_ros.training.cli", "vbrl_ros.evaluation.cli"))
+    monkeypatch.setattr(cli, "SUBCOMMANDS", ("vbrl_ros.tools.train", "vbrl_ros.tools.evaluate"))
     return cli.main([str(a) for a in argv])
 
 
@@ -68,8 +68,8 @@ def test_streamed_moments_equal_the_loaded_data(sources):
     the default d = 7872 takes minutes.)
     """
     from vbrl_ros.config import VBRLConfig
-    from vbrl_ros.training.cli import load_training_data, source_labels
     from vbrl_ros.training.streaming import RawMoments, stream_moments
+    from vbrl_ros.training.training_data import load_training_data, source_labels
 
     config = VBRLConfig()
     names = source_labels(sources, None)

@@ -1,7 +1,7 @@
 """The node's parameters: names, defaults, validation. No ROS import.
 
 ``config/vbrl.yaml`` carries the same defaults in ROS 2 parameter-file
-format; ``test/test_node_settings.py`` keeps the two in step.
+format; ``test/ros/test_settings.py`` keeps the two in step.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ import sys
 
 import pytest
 
-from vbrl_ros.cli import build_parser, main
+from vbrl_ros.tools.cli import build_parser, main
 
 
 def test_help_lists_every_subcommand(capsys):
@@ -32,7 +32,7 @@ def test_user_errors_are_one_line_and_exit_2(tmp_path, capsys):
 
 
 def test_console_script_entry_point_runs():
-    result = subprocess.run([sys.executable, "-m", "vbrl_ros.cli", "--help"],
+    result = subprocess.run([sys.executable, "-m", "vbrl_ros.tools.cli", "--help"],
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and "simulate" in result.stdout
 

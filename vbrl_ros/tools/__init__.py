@@ -1,0 +1,1 @@
+"""The ``vbrl`` command: :mod:`.cli` and one module per subcommand, with their shared options."""
