@@ -3,7 +3,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from vbrl_ros.ros.settings import NodeSettings, SettingsError
+from vbrl_ros.detection.settings import DetectorSettings, SettingsError
+from vbrl_ros.ros.settings import NodeSettings
 
 CONFIG = Path(__file__).resolve().parents[2] / "config" / "vbrl.yaml"
 
@@ -37,3 +38,11 @@ def test_bad_values_name_the_parameter(name, value, message):
 
 def test_integers_are_accepted_for_floats():
     assert NodeSettings.from_values({"keyframe_distance": 2}).keyframe_distance == 2.0
+
+
+def test_detector_parameters_are_the_detector_settings():
+    settings = NodeSettings.from_values({"top_k": 5, "distance_threshold": 0.25, "odom_topic": "/odom"})
+    assert settings.detector == DetectorSettings(top_k=5, distance_threshold=0.25)
+    assert settings.odom_topic == "/odom"
+    assert NodeSettings().detector == DetectorSettings()
+    assert "session" not in NodeSettings.defaults()  # the node derives it from session_id

@@ -6,7 +6,6 @@ offline tools drive it directly with numpy scans.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -14,35 +13,8 @@ import numpy as np
 
 from vbrl_ros.detection.database import KeyframeDatabase
 from vbrl_ros.detection.registration import downsample_for_storage, verify_loop, yaw_guess
+from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.model.model_file import VBRLModel
-
-
-@dataclass(frozen=True)
-class DetectorConfig:
-    """Policy of the detector; every value is validated (the node maps parameters onto it)."""
-
-    session: str = "default"
-    distance_threshold: float = 0.5  # accept candidates with Eq. 4 distance <= this
-    exclude_recent_s: float = 30.0  # same-session keyframes younger than this are not candidates
-    top_k: int = 3  # candidates scored (and at most verified) per keyframe
-    max_closures: int = 1  # accepted closures published per keyframe
-    verify: bool = True  # KISS-ICP registration of each candidate
-    min_fitness: float = 0.5  # verified closures below this inlier fraction are rejected
-    verification_voxel: float = 1.0  # metres; stored clouds and registration use this voxel
-
-    def __post_init__(self) -> None:
-        checks = {
-            "session": bool(self.session) and isinstance(self.session, str),
-            "distance_threshold": math.isfinite(self.distance_threshold) and self.distance_threshold > 0,
-            "exclude_recent_s": math.isfinite(self.exclude_recent_s) and self.exclude_recent_s >= 0,
-            "top_k": isinstance(self.top_k, int) and self.top_k >= 1,
-            "max_closures": isinstance(self.max_closures, int) and self.max_closures >= 1,
-            "min_fitness": 0.0 <= self.min_fitness <= 1.0,
-            "verification_voxel": math.isfinite(self.verification_voxel) and self.verification_voxel > 0,
-        }
-        for name, ok in checks.items():
-            if not ok:
-                raise ValueError(f"invalid {name}: {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True)
@@ -72,19 +44,23 @@ class KeyframeResult:
 
 
 class LoopClosureDetector:
-    """Featurize a keyframe, find it in the database, verify, then remember it."""
+    """Featurize a keyframe, find it in the database, verify, then remember it.
 
-    def __init__(self, model: VBRLModel, database: KeyframeDatabase, config: DetectorConfig) -> None:
+    ``distance_threshold``: the settings' one, or the model's own where they say 0.
+    """
+
+    def __init__(self, model: VBRLModel, database: KeyframeDatabase, settings: DetectorSettings) -> None:
         self.model = model
         self.database = database
-        self.config = config
+        self.settings = settings
+        self.distance_threshold = settings.distance_threshold or model.distance_threshold()
         self.featurizer = model.featurizer()
         self.scorer = database.scorer
 
     def process_keyframe(
         self, points: np.ndarray, stamp: float, pose: np.ndarray | None = None
     ) -> KeyframeResult:
-        cfg = self.config
+        cfg = self.settings
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         descriptor = self.scorer.compact(self.model.standardize(self.featurizer.describe(points)))
@@ -98,7 +74,7 @@ class LoopClosureDetector:
         closures: list[LoopClosure] = []
         rejected = 0
         for candidate in candidates:
-            if candidate.distance > cfg.distance_threshold or len(closures) >= cfg.max_closures:
+            if candidate.distance > self.distance_threshold or len(closures) >= cfg.max_closures:
                 break  # sorted by distance: nothing further can pass
             closure = LoopClosure(
                 query_id=self.database.next_keyframe_id, match_id=candidate.keyframe_id,

@@ -38,6 +38,8 @@ from vbrl_ros.model.scoring import WeightedL1Scorer, importance_weights, row_wei
 
 MODEL_FORMAT = "vbrl_ros.model"
 MODEL_FORMAT_VERSION = 1
+#: Acceptance threshold of a model trained without one (no poses, or streamed)
+UNCALIBRATED_DISTANCE_THRESHOLD = 0.5
 _ARRAY_KEYS = ("W", "feature_mean", "feature_scale", "w_modality", "w_voxel")
 
 
@@ -106,6 +108,11 @@ class VBRLModel:
 
     def featurizer(self) -> Featurizer:
         return Featurizer(self.config)
+
+    def distance_threshold(self) -> float:
+        """Accept Eq. 4 distances <= this: the threshold calibrated in training
+        (``metadata["distance_threshold"]``), else :data:`UNCALIBRATED_DISTANCE_THRESHOLD`."""
+        return float(self.metadata.get("distance_threshold", UNCALIBRATED_DISTANCE_THRESHOLD))
 
     def identity(self) -> str:
         """Content hash of everything that decides a descriptor's meaning and its score.

@@ -14,6 +14,7 @@ import sys
 import threading
 import time
 from collections import deque
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,14 +32,15 @@ from visualization_msgs.msg import MarkerArray
 
 from vbrl_ros.detection.database import KeyframeDatabase
 from vbrl_ros.detection.database_file import DatabaseFileError
-from vbrl_ros.detection.detector import DetectorConfig, LoopClosureDetector
+from vbrl_ros.detection.detector import LoopClosureDetector
+from vbrl_ros.detection.settings import SettingsError
 from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
 from vbrl_ros.model.builtin import load_default_model
 from vbrl_ros.model.model_file import ModelFileError, load_model
 from vbrl_ros.ros.messages import closures_message, lio_sam_message
 from vbrl_ros.ros.outputs import NodeStats, diagnostics_status, keyframe_markers
-from vbrl_ros.ros.settings import NodeSettings, SettingsError
+from vbrl_ros.ros.settings import NodeSettings
 
 
 def stamp_seconds(stamp) -> float:
@@ -63,15 +65,8 @@ class VbrlNode(Node):
         self.model = load_model(s.model_path) if s.model_path else load_default_model()
         self.database = self._open_database()
         session = s.session_id if s.session_id >= 0 else self._next_session()
-        threshold = s.distance_threshold or float(self.model.metadata.get("distance_threshold", 0.5))
-        self.detector = LoopClosureDetector(
-            self.model, self.database,
-            DetectorConfig(
-                session=str(session), distance_threshold=threshold,
-                exclude_recent_s=s.exclude_recent_s, top_k=s.top_k, max_closures=s.max_closures,
-                verify=s.verify, min_fitness=s.min_fitness, verification_voxel=s.verification_voxel,
-            ),
-        )
+        self.detector = LoopClosureDetector(self.model, self.database,
+                                            replace(s.detector, session=str(session)))
         self.session = session
         # compile (or load from cache) the featurizer kernel now, not on the first keyframe
         self.detector.featurizer.describe(np.zeros((1, 3)))
@@ -100,7 +95,7 @@ class VbrlNode(Node):
         self._worker.start()
         self.get_logger().info(
             f"listening on {s.cloud_topic}; session {session}; {len(self.database)} keyframes in "
-            f"memory; distance threshold {threshold:.3f} (lower = more similar)"
+            f"memory; distance threshold {self.detector.distance_threshold:.3f} (lower = more similar)"
         )
 
     # -- start-up ------------------------------------------------------------

@@ -1,5 +1,8 @@
 """The node's parameters: names, defaults, validation. No ROS import.
 
+The ROS parameters are flat: the node's own settings and, in their place in
+the list, the detector's (:class:`~vbrl_ros.detection.settings.DetectorSettings`,
+all but ``session``, which the node derives from ``session_id``).
 ``config/vbrl.yaml`` carries the same defaults in ROS 2 parameter-file
 format; ``test/ros/test_settings.py`` keeps the two in step.
 """
@@ -7,12 +10,14 @@ format; ``test/ros/test_settings.py`` keeps the two in step.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any
 
+from vbrl_ros.detection.settings import DetectorSettings, SettingsError
+from vbrl_ros.index.parameters import IndexParameters
 
-class SettingsError(ValueError):
-    """A parameter value the node cannot start with; the message names the parameter."""
+#: The detector's settings that are node parameters, by the same names.
+DETECTOR_PARAMETERS = tuple(f.name for f in fields(DetectorSettings) if f.name != "session")
 
 
 @dataclass(frozen=True)
@@ -24,18 +29,11 @@ class NodeSettings:
     session_id: int = -1  # -1: one more than the largest session in the database
     keyframe_distance: float = 1.0  # metres of travel between keyframes (with odometry)
     keyframe_interval: float = 1.0  # seconds between keyframes (without odometry)
-    distance_threshold: float = 0.0  # accept distance <= this (Eq. 4); 0: the model's own
-    exclude_recent_s: float = 30.0
-    top_k: int = 3  # candidates per keyframe; also bounds the verifications
-    max_closures: int = 1
-    verify: bool = True
-    min_fitness: float = 0.5
-    verification_voxel: float = 1.0
+    detector: DetectorSettings = field(default_factory=DetectorSettings)
     save_every: int = 50  # keyframes between database saves; 0: only on shutdown/service
     # Learned sparsity: descriptor rows weighing < weight_prune x the largest row weight
-    # are neither stored nor scored (0.0001 drops 13 % of the default model's rows,
-    # 0.003 % of its weight; 0.001 changed 3 of 334 winter top-1 matches of a
-    # spikier model, 0.01 lost 17).
+    # are neither stored nor scored (0.0001: about 13 % of the default model's rows,
+    # 0.003 % of its weight).
     weight_prune: float = 0.0001
     descriptor_storage: str = "float32"  # or "float16": half the memory per keyframe
     loop_closure_topic: str = "~/loop_closures"
@@ -45,18 +43,24 @@ class NodeSettings:
     diagnostics_period: float = 1.0
 
     @classmethod
-    def names(cls) -> list[str]:
-        return [f.name for f in fields(cls)]
+    def defaults(cls) -> dict[str, Any]:
+        """Every ROS parameter with its default, in the order of config/vbrl.yaml."""
+        default, out = cls(), {}
+        for f in fields(cls):
+            if f.name == "detector":
+                out.update({name: getattr(default.detector, name) for name in DETECTOR_PARAMETERS})
+            else:
+                out[f.name] = getattr(default, f.name)
+        return out
 
     @classmethod
-    def defaults(cls) -> dict[str, Any]:
-        default = cls()
-        return {name: getattr(default, name) for name in cls.names()}
+    def names(cls) -> list[str]:
+        return list(cls.defaults())
 
     @classmethod
     def from_values(cls, values: dict[str, Any]) -> "NodeSettings":
         """Build from parameter values, checking types and ranges; errors name the parameter."""
-        kinds = {f.name: type(getattr(cls(), f.name)) for f in fields(cls)}
+        kinds = {name: type(default) for name, default in cls.defaults().items()}
         clean: dict[str, Any] = {}
         for name, value in values.items():
             if name not in kinds:
@@ -69,32 +73,26 @@ class NodeSettings:
                     f"parameter '{name}' must be {kind.__name__}, got {type(value).__name__} {value!r}"
                 )
             clean[name] = value
-        settings = cls(**clean)
+        detector = {name: clean.pop(name) for name in DETECTOR_PARAMETERS if name in clean}
+        try:
+            settings = cls(**clean, detector=DetectorSettings(**detector))
+        except SettingsError as error:
+            raise SettingsError(f"parameter {error}") from None
         settings.validate()
         return settings
 
     def validate(self) -> None:
-        positive = ("keyframe_distance", "keyframe_interval", "verification_voxel", "diagnostics_period")
-        for name in positive:
+        """The node's own values (the detector's check themselves)."""
+        for name in ("keyframe_distance", "keyframe_interval", "diagnostics_period"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise SettingsError(f"parameter '{name}' must be a positive number, got {value}")
-        for name in ("distance_threshold", "exclude_recent_s"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise SettingsError(f"parameter '{name}' must be >= 0, got {value}")
-        if not 0.0 <= self.min_fitness <= 1.0:
-            raise SettingsError(f"parameter 'min_fitness' must be in [0, 1], got {self.min_fitness}")
-        for name in ("top_k", "max_closures"):
-            if getattr(self, name) < 1:
-                raise SettingsError(f"parameter '{name}' must be >= 1, got {getattr(self, name)}")
         if not (math.isfinite(self.weight_prune) and 0.0 <= self.weight_prune < 1.0):
             raise SettingsError(f"parameter 'weight_prune' must be in [0, 1), got {self.weight_prune}")
-        if self.descriptor_storage not in ("float32", "float16"):
-            raise SettingsError(
-                f"parameter 'descriptor_storage' must be 'float32' or 'float16', "
-                f"got {self.descriptor_storage!r}"
-            )
+        try:
+            IndexParameters(storage=self.descriptor_storage)
+        except ValueError as error:
+            raise SettingsError(f"parameter 'descriptor_storage': {error}") from None
         if self.save_every < 0:
             raise SettingsError(f"parameter 'save_every' must be >= 0, got {self.save_every}")
         if self.session_id < -1:

@@ -1,0 +1,47 @@
+"""What the loop-closure detector accepts, verifies and publishes per keyframe; every value checked.
+
+The node's parameters contain these settings (:mod:`vbrl_ros.ros.settings`);
+offline tools build them directly.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+class SettingsError(ValueError):
+    """A setting the detector or the node cannot start with; the message names it."""
+
+
+@dataclass(frozen=True)
+class DetectorSettings:
+    """Policy of :class:`~vbrl_ros.detection.detector.LoopClosureDetector`."""
+
+    session: str = "default"
+    distance_threshold: float = 0.0  # accept Eq. 4 distance <= this; 0: the model's own
+    exclude_recent_s: float = 30.0  # same-session keyframes younger than this are not candidates
+    top_k: int = 3  # candidates scored (and at most verified) per keyframe
+    max_closures: int = 1  # accepted closures published per keyframe
+    verify: bool = True  # KISS-ICP registration of each candidate
+    min_fitness: float = 0.5  # verified closures below this inlier fraction are rejected
+    verification_voxel: float = 1.0  # metres; stored clouds and registration use this voxel
+
+    def __post_init__(self) -> None:
+        rules = {
+            "session": (bool(self.session) and isinstance(self.session, str), "a non-empty string"),
+            "distance_threshold": (_at_least(self.distance_threshold, 0), ">= 0"),
+            "exclude_recent_s": (_at_least(self.exclude_recent_s, 0), ">= 0"),
+            "top_k": (isinstance(self.top_k, int) and self.top_k >= 1, ">= 1"),
+            "max_closures": (isinstance(self.max_closures, int) and self.max_closures >= 1, ">= 1"),
+            "min_fitness": (0.0 <= self.min_fitness <= 1.0, "in [0, 1]"),
+            "verification_voxel": (_at_least(self.verification_voxel, 0) and self.verification_voxel > 0,
+                                   "a positive number"),
+        }
+        for name, (ok, rule) in rules.items():
+            if not ok:
+                raise SettingsError(f"'{name}' must be {rule}, got {getattr(self, name)!r}")
+
+
+def _at_least(value: float, low: float) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value) and value >= low
