@@ -188,10 +188,7 @@ class BagPlayer:
         ``progress``: tqdm bar (None: only on a terminal).
         """
         import rclpy
-        from rclpy.duration import Duration
-        from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
         from rclpy.signals import SignalHandlerOptions
-        from tqdm import tqdm
 
         stop = stop or threading.Event()
         self.stats, self._first_wall = ReplayStats(), 0.0
@@ -203,48 +200,69 @@ class BagPlayer:
         node = None
         try:
             node = rclpy.create_node("vbrl_replay", context=context)
-            # Keep-all: the writer never discards a sample a reliable subscriber has not acknowledged.
-            reliable = QoSProfile(depth=QOS_DEPTH, history=HistoryPolicy.KEEP_ALL)
-            publishers = {}
-            for topic in self.topics:
-                sensor = self.cloud_qos == "sensor" and self.msgtypes[topic] == CLOUD_TYPE
-                publishers[topic] = node.create_publisher(message_class(self.msgtypes[topic]), self.outputs[topic],
-                                                          qos_profile_sensor_data if sensor else reliable)
-            clock = None
-            if self.clock_topic:
-                from rosgraph_msgs.msg import Clock
-
-                clock = node.create_publisher(Clock, self.outputs[self.clock_topic], QoSProfile(depth=QOS_DEPTH))
+            publishers, clock = self._publishers(node)
             self._warm_up()
             self._wait_for_subscribers(publishers, wait_for_subscribers, wait_topics, wait_timeout, stop)
             if delay > 0:
                 stop.wait(delay)
-            with tqdm(total=self.total, desc=f"replay {self.path.name}", unit="msg", dynamic_ncols=True,
-                      disable=None if progress is None else not progress) as bar:
-                while not stop.is_set():
-                    self.stats.passes += 1
-                    bar.reset(total=self.total)
-                    if self.loop:
-                        bar.set_description(f"replay {self.path.name} pass {self.stats.passes}")
-                    self._play_pass(publishers, clock, bar, stop)
-                    if not self.loop:
-                        break
-            # Give subscribers a moment to acknowledge the last samples (a retransmission needs the writer
-            # alive). Bounded: Fast DDS readers ack only on the writer's heartbeat, which comes at once after
-            # large samples but up to ~3 s later after small ones, and nobody wants replay to hang that long.
-            deadline = time.monotonic() + FINAL_ACK_TIMEOUT
-            for publisher in publishers.values():
-                publisher.wait_for_all_acked(Duration(seconds=max(0.0, deadline - time.monotonic())))
-            if any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for p in publishers.values()):
-                # A best-effort writer is never acknowledged, so the wait above returns at once, and
-                # destroying it right away lost the last large (fragmented) sample in ~1 of 8 test runs.
-                time.sleep(max(0.0, deadline - time.monotonic()))
+            self._play_passes(publishers, clock, progress, stop)
+            self._let_subscribers_acknowledge(publishers)
         finally:
             if node is not None:
                 node.destroy_node()
             if own_context:
                 context.try_shutdown()
         return self.stats
+
+    def _publishers(self, node: Any) -> tuple[dict[str, Any], Any]:
+        """(publisher of every replayed topic, the clock's publisher or None)."""
+        from rclpy.qos import HistoryPolicy, QoSProfile, qos_profile_sensor_data
+
+        # Keep-all: the writer never discards a sample a reliable subscriber has not acknowledged.
+        reliable = QoSProfile(depth=QOS_DEPTH, history=HistoryPolicy.KEEP_ALL)
+        publishers = {}
+        for topic in self.topics:
+            sensor = self.cloud_qos == "sensor" and self.msgtypes[topic] == CLOUD_TYPE
+            publishers[topic] = node.create_publisher(message_class(self.msgtypes[topic]), self.outputs[topic],
+                                                      qos_profile_sensor_data if sensor else reliable)
+        clock = None
+        if self.clock_topic:
+            from rosgraph_msgs.msg import Clock
+
+            clock = node.create_publisher(Clock, self.outputs[self.clock_topic], QoSProfile(depth=QOS_DEPTH))
+        return publishers, clock
+
+    def _play_passes(self, publishers: dict[str, Any], clock: Any, progress: bool | None,
+                     stop: threading.Event) -> None:
+        """One pass, or passes until ``stop`` with ``loop``, under one progress bar."""
+        from tqdm import tqdm
+
+        with tqdm(total=self.total, desc=f"replay {self.path.name}", unit="msg", dynamic_ncols=True,
+                  disable=None if progress is None else not progress) as bar:
+            while not stop.is_set():
+                self.stats.passes += 1
+                bar.reset(total=self.total)
+                if self.loop:
+                    bar.set_description(f"replay {self.path.name} pass {self.stats.passes}")
+                self._play_pass(publishers, clock, bar, stop)
+                if not self.loop:
+                    break
+
+    @staticmethod
+    def _let_subscribers_acknowledge(publishers: dict[str, Any]) -> None:
+        """Give subscribers a moment to acknowledge the last samples (a retransmission needs the writer
+        alive). Bounded: Fast DDS readers ack only on the writer's heartbeat, which comes at once after
+        large samples but up to ~3 s later after small ones, and nobody wants replay to hang that long."""
+        from rclpy.duration import Duration
+        from rclpy.qos import ReliabilityPolicy
+
+        deadline = time.monotonic() + FINAL_ACK_TIMEOUT
+        for publisher in publishers.values():
+            publisher.wait_for_all_acked(Duration(seconds=max(0.0, deadline - time.monotonic())))
+        if any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for p in publishers.values()):
+            # A best-effort writer is never acknowledged, so the wait above returns at once, and
+            # destroying it right away could lose the last large (fragmented) sample.
+            time.sleep(max(0.0, deadline - time.monotonic()))
 
     def _warm_up(self) -> None:
         """Convert one message per topic: rosbags compiles its deserialisers on first use (~10 ms each)."""

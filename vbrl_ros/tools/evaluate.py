@@ -18,8 +18,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,6 +37,9 @@ from vbrl_ros.io.atomic import atomic_write
 from vbrl_ros.model.model_file import VBRLModel, load_model
 from vbrl_ros.tools.options import add_keyframe_arguments, add_source_arguments
 from vbrl_ros.training.ablations import FULL_NAME, discover_ablations
+
+if TYPE_CHECKING:
+    from vbrl_ros.evaluation.methods import SourceDescriptors
 
 TOP_K = 5  # Recall@5
 REPORT_RADII = (3.0, 5.0)  # DESIGN.md §3: report 3 m and 5 m
@@ -158,11 +162,37 @@ def write_matches(path: Path, results: RetrievalResults, query_scans: np.ndarray
     return atomic_write(path, lambda handle: handle.write(text.encode()))
 
 
-def run(args: argparse.Namespace) -> int:
-    from vbrl_ros.evaluation import headroom
-    from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
-    from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod, describe_source
+@dataclass
+class Evaluation:
+    """What ``vbrl eval`` compares: the methods, on the described sources, by the protocol."""
 
+    protocol: str  # "P1" or "P2"
+    queries: SourceDescriptors
+    database: SourceDescriptors  # the queries themselves for P1
+    models: dict[str, VBRLModel]
+    methods: list[Any]
+    notes: list[str]
+    alignment: np.ndarray | None
+    radii: list[float]
+
+    def title(self, exclude: int) -> str:
+        if self.protocol == "P1":
+            return f"P1 {self.queries.name} (exclude {exclude})"
+        return f"P2 {self.queries.name} -> {self.database.name}"
+
+
+def run(args: argparse.Namespace) -> int:
+    check_arguments(args)
+    evaluation = load(args)
+    metrics, full_results = evaluate_methods(args, evaluation)
+    agreement = None
+    if args.check_exact and full_results is not None:
+        agreement = exact_agreement(args, evaluation, metrics, full_results)
+    report(args, evaluation, metrics, agreement, full_results)
+    return 0
+
+
+def check_arguments(args: argparse.Namespace) -> None:
     if not (math.isfinite(args.radius) and args.radius > 0):
         raise ValueError("--radius must be a positive number of metres")
     if args.exclude < 1:
@@ -171,6 +201,13 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--prune must be in [0, 1)")
     if args.align is not None and args.against is None:
         raise ValueError("--align only applies to P2 (--against)")
+
+
+def load(args: argparse.Namespace) -> Evaluation:
+    """The models, the sources described once each, and the methods to compare."""
+    from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
+    from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod, describe_source
+
     alignment = load_alignment(args.align) if args.align is not None else None
     models, notes = load_models(args.model, args.ablations)
     config = models[FULL_NAME].config
@@ -188,79 +225,97 @@ def run(args: argparse.Namespace) -> int:
                           for name, m in models.items()]
     if args.scan_context:
         methods.append(ScanContextMethod(sc_config, args.sc_candidates))
-    radii = sorted({float(args.radius), *REPORT_RADII})
-    protocol = "P1" if args.against is None else "P2"
+    return Evaluation("P1" if args.against is None else "P2", queries, database, models, methods,
+                      notes, alignment, sorted({float(args.radius), *REPORT_RADII}))
 
-    def retrieve(method: Any) -> RetrievalResults:
-        fn = method.distances_fn(queries, database)
-        if protocol == "P1":
-            return online_retrieval(len(queries), args.exclude, TOP_K, fn, progress=not args.quiet)
-        return cross_session_retrieval(len(queries), len(database), TOP_K, fn,
-                                       progress=not args.quiet)
 
-    def score(results: RetrievalResults) -> dict[float, RetrievalMetrics]:
-        if protocol == "P1":
-            return {r: evaluate_online(queries.positions, results.indices, results.distances, r,
-                                       args.exclude) for r in radii}
-        return {r: evaluate_cross_session(queries.positions, database.positions, results.indices,
-                                          results.distances, r, alignment) for r in radii}
+def retrieve(args: argparse.Namespace, evaluation: Evaluation, method: Any) -> RetrievalResults:
+    """Top-K of every query by ``method``, under the protocol."""
+    queries, database = evaluation.queries, evaluation.database
+    fn = method.distances_fn(queries, database)
+    if evaluation.protocol == "P1":
+        return online_retrieval(len(queries), args.exclude, TOP_K, fn, progress=not args.quiet)
+    return cross_session_retrieval(len(queries), len(database), TOP_K, fn, progress=not args.quiet)
 
+
+def score(args: argparse.Namespace, evaluation: Evaluation,
+          results: RetrievalResults) -> dict[float, RetrievalMetrics]:
+    """The metrics of ``results`` at every reported radius."""
+    queries, database = evaluation.queries, evaluation.database
+    if evaluation.protocol == "P1":
+        return {r: evaluate_online(queries.positions, results.indices, results.distances, r,
+                                   args.exclude) for r in evaluation.radii}
+    return {r: evaluate_cross_session(queries.positions, database.positions, results.indices,
+                                      results.distances, r, evaluation.alignment)
+            for r in evaluation.radii}
+
+
+def evaluate_methods(args: argparse.Namespace, evaluation: Evaluation
+                     ) -> tuple[dict[str, dict[float, RetrievalMetrics]], RetrievalResults | None]:
+    """Metrics of every method by name, and the full model's retrieval results."""
     metrics: dict[str, dict[float, RetrievalMetrics]] = {}
     full_results: RetrievalResults | None = None
-    for method in methods:
-        results = retrieve(method)
-        metrics[method.name] = score(results)
+    for method in evaluation.methods:
+        results = retrieve(args, evaluation, method)
+        metrics[method.name] = score(args, evaluation, results)
         if method.name == FULL_NAME:
             full_results = results
-    agreement = None
-    if args.check_exact and full_results is not None:
-        # the reference: brute force over every keyframe and shift, nothing pruned
-        reference_name = f"{FULL_NAME}, exact"
-        exact = retrieve(VBRLMethod(reference_name, models[FULL_NAME], exact=True, prune=0.0))
-        metrics[reference_name] = score(exact)
-        asked = full_results.database_limit > 0
-        same = full_results.indices[asked, 0] == exact.indices[asked, 0]
-        agreement = {"queries": int(asked.sum()), "same_top1": int(same.sum()),
-                     "retrieval": "exact" if args.exact else "index", "prune": args.prune}
-        # headroom of the matches that count: brute-force top-1s within the radius
-        query_positions = (queries.positions if alignment is None
-                           else apply_transform(queries.positions, alignment))
-        correct = correct_mask(query_positions, database.positions, exact.indices[:, :1],
-                               args.radius, exact.database_limit)[:, 0]
-        full = next(m for m in methods if m.name == FULL_NAME)
-        shares = headroom.key_rank_shares(full.new_index(), full.compact(queries.vbrl),
-                                          full.compact(database.vbrl),
-                                          np.where(correct, exact.indices[:, 0], -1),
-                                          exact.database_limit)
-        agreement["key_rank"] = {"radius": float(args.radius), **headroom.summary(shares)}
-    for note in notes:
+    return metrics, full_results
+
+
+def exact_agreement(args: argparse.Namespace, evaluation: Evaluation,
+                    metrics: dict[str, dict[float, RetrievalMetrics]],
+                    full_results: RetrievalResults) -> dict[str, Any]:
+    """How often the full model's top-1 is unpruned brute force's, and the key-rank headroom.
+
+    Adds the brute-force reference's row to ``metrics``.
+    """
+    from vbrl_ros.evaluation import headroom
+    from vbrl_ros.evaluation.methods import VBRLMethod
+
+    queries, database = evaluation.queries, evaluation.database
+    # the reference: brute force over every keyframe and shift, nothing pruned
+    reference_name = f"{FULL_NAME}, exact"
+    exact = retrieve(args, evaluation, VBRLMethod(reference_name, evaluation.models[FULL_NAME],
+                                                  exact=True, prune=0.0))
+    metrics[reference_name] = score(args, evaluation, exact)
+    asked = full_results.database_limit > 0
+    same = full_results.indices[asked, 0] == exact.indices[asked, 0]
+    agreement: dict[str, Any] = {"queries": int(asked.sum()), "same_top1": int(same.sum()),
+                                 "retrieval": "exact" if args.exact else "index", "prune": args.prune}
+    # headroom of the matches that count: brute-force top-1s within the radius
+    query_positions = (queries.positions if evaluation.alignment is None
+                       else apply_transform(queries.positions, evaluation.alignment))
+    correct = correct_mask(query_positions, database.positions, exact.indices[:, :1],
+                           args.radius, exact.database_limit)[:, 0]
+    full = next(m for m in evaluation.methods if m.name == FULL_NAME)
+    shares = headroom.key_rank_shares(full.new_index(), full.compact(queries.vbrl),
+                                      full.compact(database.vbrl),
+                                      np.where(correct, exact.indices[:, 0], -1),
+                                      exact.database_limit)
+    agreement["key_rank"] = {"radius": float(args.radius), **headroom.summary(shares)}
+    return agreement
+
+
+def report(args: argparse.Namespace, evaluation: Evaluation,
+           metrics: dict[str, dict[float, RetrievalMetrics]], agreement: dict[str, Any] | None,
+           full_results: RetrievalResults | None) -> None:
+    """Print the table; write the JSON metrics, the PR curves and the matches asked for."""
+    from vbrl_ros.evaluation import headroom
+
+    queries, database = evaluation.queries, evaluation.database
+    for note in evaluation.notes:
         print(f"note: {note}")
-    title = (f"P1 {queries.name} (exclude {args.exclude})" if protocol == "P1"
-             else f"P2 {queries.name} -> {database.name}")
+    title = evaluation.title(args.exclude)
     print(f"{title}: {len(queries)} query keyframes, {len(database)} database keyframes")
-    print(format_table(metrics, radii))
+    print(format_table(metrics, evaluation.radii))
     if agreement is not None:
         print(f"{FULL_NAME} ({agreement['retrieval']}, prune {args.prune:g}): top-1 equals the "
               f"unpruned brute-force top-1 on {agreement['same_top1']} of {agreement['queries']} "
               "queries")
         print(headroom.describe(agreement["key_rank"]))
-
     if args.json is not None:
-        report = {
-            "protocol": protocol, "query_source": str(args.query),
-            "database_source": None if args.against is None else str(args.against),
-            "model": str(args.model), "radius": float(args.radius), "radii": radii,
-            "exclude": args.exclude if protocol == "P1" else None,
-            "align": None if alignment is None else alignment.tolist(),
-            "num_query_keyframes": len(queries), "num_database_keyframes": len(database),
-            "methods": list(metrics), "notes": notes,
-            "retrieval": "exact" if args.exact else "index", "prune": args.prune,
-            "grid": config.grid.kind, "exact_agreement": agreement,
-            "metrics": {name: {f"{r:g}": m.summary() for r, m in by_r.items()}
-                        for name, by_r in metrics.items()},
-        }
-        text = json.dumps(_clean(report), indent=2, allow_nan=False)
-        print(f"metrics written to {atomic_write(args.json, lambda h: h.write(text.encode()))}")
+        print(f"metrics written to {write_metrics(args, evaluation, metrics, agreement)}")
     plot = args.plot or (args.json.with_suffix(".png") if args.json else args.out_dir / "pr.png")
     from vbrl_ros.evaluation.plots import plot_pr_curves  # matplotlib: only when plotting
 
@@ -272,4 +327,25 @@ def run(args: argparse.Namespace) -> int:
         out = write_matches(args.dump_matches, full_results, queries.keyframe_index,
                             database.keyframe_index)
         print(f"matches of {FULL_NAME} written to {out}")
-    return 0
+
+
+def write_metrics(args: argparse.Namespace, evaluation: Evaluation,
+                  metrics: dict[str, dict[float, RetrievalMetrics]],
+                  agreement: dict[str, Any] | None) -> Path:
+    protocol, alignment = evaluation.protocol, evaluation.alignment
+    report = {
+        "protocol": protocol, "query_source": str(args.query),
+        "database_source": None if args.against is None else str(args.against),
+        "model": str(args.model), "radius": float(args.radius), "radii": evaluation.radii,
+        "exclude": args.exclude if protocol == "P1" else None,
+        "align": None if alignment is None else alignment.tolist(),
+        "num_query_keyframes": len(evaluation.queries),
+        "num_database_keyframes": len(evaluation.database),
+        "methods": list(metrics), "notes": evaluation.notes,
+        "retrieval": "exact" if args.exact else "index", "prune": args.prune,
+        "grid": evaluation.models[FULL_NAME].config.grid.kind, "exact_agreement": agreement,
+        "metrics": {name: {f"{r:g}": m.summary() for r, m in by_r.items()}
+                    for name, by_r in metrics.items()},
+    }
+    text = json.dumps(_clean(report), indent=2, allow_nan=False)
+    return atomic_write(args.json, lambda h: h.write(text.encode()))

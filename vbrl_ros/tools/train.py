@@ -16,10 +16,13 @@ descriptors are never held: :mod:`.streaming`.
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from vbrl_ros.config import GRID_KINDS, VBRLConfig, VoxelGridConfig
 from vbrl_ros.features.featurizer import Featurizer
+from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.tools.options import add_keyframe_arguments, add_source_arguments, float_list
 from vbrl_ros.training import cv as cv_module
 from vbrl_ros.training import streaming
@@ -28,7 +31,7 @@ from vbrl_ros.training.fit import TrainingResult, fit_model
 from vbrl_ros.training.report import importance_report
 from vbrl_ros.training.targets import TARGETS, place_labels
 from vbrl_ros.training.threshold import recommend_threshold
-from vbrl_ros.training.training_data import load_training_data, source_labels
+from vbrl_ros.training.training_data import TrainingData, load_training_data, source_labels
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -116,18 +119,43 @@ def grid_config(args: argparse.Namespace) -> VBRLConfig:
     return VBRLConfig(grid=VoxelGridConfig(kind="polar", **polar))
 
 
+@dataclass
+class LoadedTraining:
+    """The loaded training set and how to fit W on it, in memory or from streamed moments."""
+
+    fit: Callable[[float, float, dict], TrainingResult]  # (λ1, λ2, metadata) -> result
+    keyframes: int
+    scenario_names: list[str]
+    lambdas: tuple[float, float]  # the given pair, or the one cross-validation chose
+    metadata: dict
+    data: TrainingData | None = None  # None when streamed
+
+
 def run(args: argparse.Namespace) -> int:
+    check_arguments(args)
+    config = grid_config(args)
+    names = source_labels(args.sources, args.labels.split(",") if args.labels else None)
+    training = load(args, config, names)
+    result = training.fit(*training.lambdas, dict(training.metadata))
+    calibrate_threshold(args, result.model, training.data)
+    path = save_model(args, result, training)
+    if args.ablations:
+        save_ablations(path, training)
+    return 0
+
+
+def check_arguments(args: argparse.Namespace) -> None:
     if args.lambda1 < 0 or args.lambda2 < 0:
         raise ValueError("--lambda1 and --lambda2 must be >= 0")
     if args.max_memory_gb <= 0:
         raise ValueError("--max-memory-gb must be positive")
-    config = grid_config(args)
-    layout = Featurizer(config).layout
-    d = layout.dimension
-    names = source_labels(args.sources, args.labels.split(",") if args.labels else None)
+
+
+def load(args: argparse.Namespace, config: VBRLConfig, names: list[str]) -> LoadedTraining:
+    """Stream the sources into Gram moments or load their descriptors, as the data size asks."""
+    d = Featurizer(config).layout.dimension
     stream, counted = _should_stream(args, d)
-    base_meta = {"sources": [str(p) for p in args.sources], "labels": names}
-    lambda1, lambda2 = args.lambda1, args.lambda2
+    metadata = {"sources": [str(p) for p in args.sources], "labels": names}
     if args.targets == "places" and (stream or args.cv):
         raise ValueError("--targets places works with in-memory training without --cv for now")
     if stream:
@@ -138,79 +166,105 @@ def run(args: argparse.Namespace) -> int:
         if counted is not None:
             print(f"{counted} keyframes x {d} features = {counted * d * 4 / 1e9:.1f} GB > "
                   f"--max-memory-gb {args.max_memory_gb:g}: streaming into the Gram matrix")
-        moments, info = streaming.stream_moments(
-            args.sources, names, config, topic=args.topic, poses=args.poses,
-            keyframe_distance=args.keyframe_distance, every=args.every, workers=args.workers,
-            progress=not args.quiet,
-        )
-        standardized = moments.standardized(layout.tie_of_row)
-        scenario_names = info.scenario_names
+        return load_streamed(args, config, names, metadata)
+    return load_in_memory(args, config, names, metadata)
 
-        def fit(l1: float, l2: float, meta: dict) -> TrainingResult:
-            return streaming.fit_from_moments(moments, scenario_names, config, l1, l2,
-                                              metadata=meta, standardized=standardized)
-        n_keyframes = moments.n
-    else:
-        data = load_training_data(
-            args.sources, config, labels=names, topic=args.topic, poses=args.poses,
-            keyframe_distance=args.keyframe_distance, every=args.every,
-            workers=args.workers, progress=not args.quiet,
-        )
-        scenario_names = data.scenario_names
-        n_keyframes = len(data.descriptors)
-        if args.cv:
-            result_cv = cv_module.cross_validate(
-                data.descriptors, data.labels, data.scenario_names, data.positions,
-                data.source_of_row, data.keyframe_index, config, folds=args.cv,
-                lambda1_grid=args.lambda1_grid, lambda2_grid=args.lambda2_grid,
-                radius=args.radius, exclude=args.exclude, progress=not args.quiet,
-            )
-            print(cv_module.format_cv_table(result_cv))
-            lambda1, lambda2 = result_cv.best
-            base_meta["cv"] = result_cv.metadata()
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            print(f"cross-validation heat map: {cv_module.plot_cv(result_cv, sibling_path(args.out, 'cv.png'))}")
 
-        targets, target_names = data.labels, data.scenario_names
-        if args.targets == "places":
-            targets, target_names = place_labels(data.positions, args.place_size)
-            base_meta["targets"] = f"places ({len(target_names)} cells of {args.place_size:g} m)"
-            print(f"Y labels {len(target_names)} places ({args.place_size:g} m cells)")
+def load_streamed(args: argparse.Namespace, config: VBRLConfig, names: list[str],
+                  metadata: dict) -> LoadedTraining:
+    moments, info = streaming.stream_moments(
+        args.sources, names, config, topic=args.topic, poses=args.poses,
+        keyframe_distance=args.keyframe_distance, every=args.every, workers=args.workers,
+        progress=not args.quiet,
+    )
+    standardized = moments.standardized(Featurizer(config).layout.tie_of_row)
 
-        def fit(l1: float, l2: float, meta: dict) -> TrainingResult:
-            return fit_model(data.descriptors, targets, target_names, config,
-                             lambda1=l1, lambda2=l2, metadata=meta)
+    def fit(l1: float, l2: float, meta: dict) -> TrainingResult:
+        return streaming.fit_from_moments(moments, info.scenario_names, config, l1, l2,
+                                          metadata=meta, standardized=standardized)
 
-    result = fit(lambda1, lambda2, dict(base_meta))
-    model = result.model
-    if stream:
+    return LoadedTraining(fit, moments.n, info.scenario_names, (args.lambda1, args.lambda2), metadata)
+
+
+def load_in_memory(args: argparse.Namespace, config: VBRLConfig, names: list[str],
+                   metadata: dict) -> LoadedTraining:
+    data = load_training_data(
+        args.sources, config, labels=names, topic=args.topic, poses=args.poses,
+        keyframe_distance=args.keyframe_distance, every=args.every,
+        workers=args.workers, progress=not args.quiet,
+    )
+    lambdas = (args.lambda1, args.lambda2)
+    if args.cv:
+        lambdas = cross_validated_lambdas(args, data, config, metadata)
+    targets, target_names = data.labels, data.scenario_names
+    if args.targets == "places":
+        targets, target_names = place_labels(data.positions, args.place_size)
+        metadata["targets"] = f"places ({len(target_names)} cells of {args.place_size:g} m)"
+        print(f"Y labels {len(target_names)} places ({args.place_size:g} m cells)")
+
+    def fit(l1: float, l2: float, meta: dict) -> TrainingResult:
+        return fit_model(data.descriptors, targets, target_names, config,
+                         lambda1=l1, lambda2=l2, metadata=meta)
+
+    return LoadedTraining(fit, len(data.descriptors), data.scenario_names, lambdas, metadata, data)
+
+
+def cross_validated_lambdas(args: argparse.Namespace, data: TrainingData, config: VBRLConfig,
+                            metadata: dict) -> tuple[float, float]:
+    """(λ1, λ2) chosen by --cv; prints the table, writes the heat map, records both in ``metadata``."""
+    result_cv = cv_module.cross_validate(
+        data.descriptors, data.labels, data.scenario_names, data.positions,
+        data.source_of_row, data.keyframe_index, config, folds=args.cv,
+        lambda1_grid=args.lambda1_grid, lambda2_grid=args.lambda2_grid,
+        radius=args.radius, exclude=args.exclude, progress=not args.quiet,
+    )
+    print(cv_module.format_cv_table(result_cv))
+    metadata["cv"] = result_cv.metadata()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    print(f"cross-validation heat map: {cv_module.plot_cv(result_cv, sibling_path(args.out, 'cv.png'))}")
+    return result_cv.best
+
+
+def calibrate_threshold(args: argparse.Namespace, model: VBRLModel, data: TrainingData | None) -> None:
+    """Record the recommended acceptance threshold in the model's metadata, when it can be measured."""
+    if data is None:
         print("distance_threshold: not computed with --stream (it needs the descriptors); "
               "measure one with vbrl eval")
-    else:
-        threshold = recommend_threshold(
-            model, data.descriptors, data.labels, data.positions, data.source_of_row,
-            data.keyframe_index, radius=args.radius, exclude=args.exclude)
-        if threshold is None:
-            print("distance_threshold: not computed (no poses or no revisits in the training data)")
-        else:
-            model.metadata["distance_threshold"] = threshold.pop("distance_threshold")
-            model.metadata["distance_threshold_info"] = threshold
-            print(f"recommended acceptance threshold (max F1 {threshold['max_f1']:.3f}, "
-                  f"{threshold['protocol']} on the training keyframes, {threshold['radius']:g} m): "
-                  f"distance <= {model.metadata['distance_threshold']:.6g}")
+        return
+    threshold = recommend_threshold(
+        model, data.descriptors, data.labels, data.positions, data.source_of_row,
+        data.keyframe_index, radius=args.radius, exclude=args.exclude)
+    if threshold is None:
+        print("distance_threshold: not computed (no poses or no revisits in the training data)")
+        return
+    model.metadata["distance_threshold"] = threshold.pop("distance_threshold")
+    model.metadata["distance_threshold_info"] = threshold
+    print(f"recommended acceptance threshold (max F1 {threshold['max_f1']:.3f}, "
+          f"{threshold['protocol']} on the training keyframes, {threshold['radius']:g} m): "
+          f"distance <= {model.metadata['distance_threshold']:.6g}")
+
+
+def save_model(args: argparse.Namespace, result: TrainingResult, training: LoadedTraining) -> Path:
+    """Write the model and its figures; print what was learned."""
+    model = result.model
     path = model.save(args.out)
-    print(f"trained on {n_keyframes} keyframes from {len(args.sources)} source(s), "
-          f"{len(scenario_names)} scenario(s), λ1 = {lambda1:g}, λ2 = {lambda2:g}: {_summary(result)}")
+    lambda1, lambda2 = training.lambdas
+    print(f"trained on {training.keyframes} keyframes from {len(args.sources)} source(s), "
+          f"{len(training.scenario_names)} scenario(s), λ1 = {lambda1:g}, λ2 = {lambda2:g}: "
+          f"{_summary(result)}")
     print(importance_report(model))
     from vbrl_ros.training.plots import save_importance_plots  # matplotlib: only when needed
 
     for kind, png in save_importance_plots(model, path).items():
         print(f"{kind} figure: {png}")
     print(f"model written to {path}")
-    if args.ablations:
-        for name in ABLATIONS:
-            l1, l2 = ablation_lambdas(name, lambda1, lambda2)
-            ablation = fit(l1, l2, {**base_meta, "ablation": name, "full_model": path.name})
-            out = ablation.model.save(ablation_path(path, name))
-            print(f"ablation {name:<14s} (λ1 = {l1:g}, λ2 = {l2:g}): {_summary(ablation)} -> {out}")
-    return 0
+    return path
+
+
+def save_ablations(path: Path, training: LoadedTraining) -> None:
+    """The paper's three ablations, fitted on the same data, next to the model."""
+    for name in ABLATIONS:
+        l1, l2 = ablation_lambdas(name, *training.lambdas)
+        ablation = training.fit(l1, l2, {**training.metadata, "ablation": name, "full_model": path.name})
+        out = ablation.model.save(ablation_path(path, name))
+        print(f"ablation {name:<14s} (λ1 = {l1:g}, λ2 = {l2:g}): {_summary(ablation)} -> {out}")
