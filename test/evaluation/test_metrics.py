@@ -1,4 +1,4 @@
-"""Protocol metrics (DESIGN.md section 3) on hand-computed cases."""
+"""Protocol metrics (docs/design.md section 3) on hand-computed cases."""
 
 from __future__ import annotations
 
@@ -222,7 +222,7 @@ def test_json_round_trip(tmp_path) -> None:
     direct = evaluate_online(p, idx[:, :1], dist[:, :1], 3.0, 3).summary()
     assert evaluate_matches_file(path, p, 3.0, exclude=3).summary() == direct
 
-    # Top-K lists survive too (Recall@5), and DESIGN.md's "score" key is read.
+    # Top-K lists survive too (Recall@5), and docs/design.md's "score" key is read.
     dump_matches(path, res, include_top_k=True)
     assert evaluate_matches_file(path, p, 3.0, exclude=3).summary() == evaluate_online(p, idx, dist, 3.0, 3).summary()
     path.write_text(json.dumps([{"query": 9, "match": 0, "score": 0.2}]))

@@ -219,14 +219,14 @@ def test_cross_season_drive_recall_equals_brute_force(drive, storage):
                                                 storage)
     assert agree == 1.0 and recall == recall_exact
     agree, recall, recall_exact = _cross_season(polar, int((polar.session == 0).sum()), storage)
-    assert agree >= 0.98  # measured 0.994 (0.977 before shift completion): one near-tie
-    assert abs(recall - recall_exact) <= 0.01  # measured 0.785 both
+    assert agree >= 0.98  # 0.994 on this data: one near-tie
+    assert abs(recall - recall_exact) <= 0.01  # 0.785 for both on this data
 
 
 def test_cartesian_agrees_with_brute_force_at_a_few_thousand_keyframes(drive):
     agree, recall, recall_exact = _cross_season(drive[0], 3000)
-    assert agree >= 0.97  # measured 0.989
-    assert abs(recall - recall_exact) <= 0.02  # measured 0.966 vs 0.972
+    assert agree >= 0.97  # 0.989 on this data
+    assert abs(recall - recall_exact) <= 0.02  # 0.966 vs 0.972 on this data
 
 
 def test_polar_at_a_few_thousand_keyframes(drive):
@@ -243,8 +243,8 @@ def test_polar_at_a_few_thousand_keyframes(drive):
         assert found.indices[0] == exact.indices[0] == target and found.shifts[0] == k
     # real cross-season queries: the rotation-invariant key is coarse on this drive
     agree, recall, recall_exact = _cross_season(polar, 3000, queries=40)
-    assert agree >= 0.75  # measured 0.84 (0.82 over all 177 queries)
-    assert recall >= recall_exact - 0.1  # measured 0.80 vs 0.84 (all: 0.751 vs 0.785)
+    assert agree >= 0.75  # 0.84 on these queries
+    assert recall >= recall_exact - 0.1  # 0.80 vs 0.84 on these queries
 
 
 # -- masks, growth, persistence, input checks ----------------------------------------------

@@ -1,4 +1,4 @@
-"""Tests for vbrl_ros.model.solver (DESIGN.md §2: Eq. 3 and Algorithm 1)."""
+"""Tests for vbrl_ros.model.solver (docs/design.md §2: Eq. 3 and Algorithm 1)."""
 import numpy as np
 import pytest
 import scipy.optimize

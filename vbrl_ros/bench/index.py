@@ -1,4 +1,4 @@
-"""``vbrl bench`` index section: query + insert at 1k / 10k / 100k keyframes (DESIGN.md §5).
+"""``vbrl bench`` index section: query + insert at 1k / 10k / 100k keyframes (docs/design.md §5).
 
 For the Cartesian descriptor (default model, d ~ 7.9k, S = 1) and a polar one
 (S = 24, d ~ 15.7k active; see :mod:`vbrl_ros.bench.descriptors` for how it
@@ -248,7 +248,7 @@ def _brute_force(index: KeyframeIndex, rng: np.random.Generator) -> dict[str, An
     shifts = np.empty(len(rows), np.int64)
     store = index.descriptors()
     # compile outside the timing: on a fresh install the first call is JIT
-    # compilation (seconds), which once made brute force look 20x slower
+    # compilation (seconds), which would dwarf the brute-force timing
     min_over_shifts(store, rows[:1], index.descriptor(0), index.column_weights, index.sectors,
                     distances, shifts)
     times = []

@@ -55,7 +55,7 @@ def measure(repeats: int = 30, config: VBRLConfig | None = None) -> dict[str, An
     featurizer = Featurizer(config)
     scan = benchmark_scan()
     describe_s = median_seconds(lambda: featurizer.describe(scan), repeats)
-    # the polar grid (issue 6) has ~2.6x the occupied voxels: same budget
+    # the polar grid has ~2.6x the occupied voxels: same budget
     polar = Featurizer(VBRLConfig(grid=VoxelGridConfig(kind="polar")))
     polar_s = median_seconds(lambda: polar.describe(scan), repeats)
     solver = time_one_iteration(n=700, d=featurizer.dimension)

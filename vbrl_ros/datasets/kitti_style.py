@@ -1,4 +1,4 @@
-"""KITTI-style recording folders (DESIGN.md §3): read them as a ScanSource, and write them.
+"""KITTI-style recording folders (docs/design.md §3): read them as a ScanSource, and write them.
 
 Layout: ``velodyne/NNNNNN.bin`` (float32 little-endian, N x 4: x, y, z,
 intensity, sensor frame), optional ``poses.txt`` (one line per scan, 12

@@ -95,7 +95,7 @@ def _shuffled(points: np.ndarray) -> np.ndarray:
     KISS-ICP's voxel_down_sample keeps the *first* point of each voxel; in scan
     order that is always the lowest beam / earliest azimuth, a systematic
     offset of up to a voxel that differs between two viewpoints and biases
-    scan-to-scan ICP (measured: ~10 cm -> ~6 cm with 1 m stored clouds).
+    scan-to-scan ICP (~10 cm -> ~6 cm with 1 m stored clouds).
     Seeded, so results are reproducible.
     """
     return points[np.random.default_rng(0).permutation(len(points))]

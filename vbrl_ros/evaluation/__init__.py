@@ -1,4 +1,4 @@
-"""Offline evaluation: protocols P1/P2 of DESIGN.md section 3.
+"""Offline evaluation: protocols P1/P2 of docs/design.md section 3.
 
 - :mod:`.metrics` - revisit ground truth, threshold sweep, F1/AP/Recall@K;
 - :mod:`.retrieval` - descriptor-agnostic top-K drivers for P1 and P2;

@@ -5,8 +5,8 @@ increasing query order (indices are scan indices in source order, 0-based)::
 
     [{"query": 57, "match": 3, "distance": 0.21}, ...]
 
-- ``distance``: lower = more similar (the method's own scale). DESIGN.md
-  section 4 calls this field ``score``; the loader accepts either name.
+- ``distance``: lower = more similar (the method's own scale); the loader
+  also accepts the key ``score`` (docs/design.md §4.4).
 - A query whose method returned no candidate has ``"match": -1,
   "distance": null``.
 - Queries without a database (P1: i < exclude) get no entry; on loading, a

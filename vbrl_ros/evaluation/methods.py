@@ -170,7 +170,7 @@ class VBRLMethod:
                  prune: float = 0.0) -> None:
         self.name, self.model, self.exact = name, model, exact
         self.scorer = model.scorer(prune=prune)
-        self.yaws: dict[int, np.ndarray] = {}  # query -> yaws of its top-K (last run)
+        self.yaws: dict[int, np.ndarray] = {}  # query -> yaws of its top-K (latest distances_fn)
 
     def compact(self, raw: np.ndarray) -> np.ndarray:
         """Standardised active rows of raw descriptors (n, d): what the index stores."""

@@ -1,4 +1,4 @@
-"""Loop-closure metrics for the protocols of DESIGN.md section 3.
+"""Loop-closure metrics for the protocols of docs/design.md section 3.
 
 Generic core: queries with positions, a database with positions, and for each
 query its top-K retrieved database indices with distances (lower = more

@@ -10,7 +10,7 @@ magnitude per bin, then each cell normalised by its L2 norm.
 Unlike scikit-image this runs on a whole stack of rasters at once (one per
 voxel). :func:`hog_batch` is one compiled pass; :func:`hog_batch_numpy` is the
 vectorised reference it must agree with (a test checks). The numpy version
-spent ~4.5 ms of the 10 ms describe budget on the polar grid's ~1000 8x8
+spends ~4.5 ms of the 10 ms describe budget on the polar grid's ~1000 8x8
 snapshots, mostly in full-array passes (``% 180``, ``hypot``, ``arctan2``,
 temporaries) over pixels that are mostly gradient-free.
 """

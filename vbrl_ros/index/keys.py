@@ -16,10 +16,10 @@ stored as a nibble (value + 8), two entries per byte, in blocks of
 :data:`BLOCK` keyframes, entry-pair-major inside a block, so the scan compares
 one query pair against 128 keyframes in one vector loop. Nibble differences
 (<= 15) are summed in uint8 over 8 pairs (<= 240) before widening to uint16
-(exact up to :data:`MAX_KEY_DIM` entries). Measured on a trained polar model
-at 100k keyframes, 4 bits rank the brute-force match as well as 8 bits did at
-the same number of entries, so twice the entries fit in the same bytes, and
-the scan is ~1.5x faster per entry than an int8 one. The scan selects the
+(exact up to :data:`MAX_KEY_DIM` entries). 4 bits rank the brute-force
+match as well as 8 bits at the same number of entries (a trained polar model
+at 100k keyframes), so twice the entries fit in the same bytes, and the scan
+is ~1.5x faster per entry than an int8 one. The scan selects the
 best ``want`` keys by counting scores (the mask is applied inside), so nothing
 is sorted or partitioned. All kernels are single-threaded and release the GIL.
 """
@@ -78,8 +78,8 @@ class KeyCodec:
         self.refine_inverse_scale = self._inverse_scale(w64, self.refine_group, max(refine_dim, 1),
                                                         key_clip_sigma)
         # Candidate-key groups of equal weight energy (heaviest columns alone), random
-        # signs. A random partition let one heavy column set the int8 scale of every
-        # group: with a model whose weight sits on a few rows most keys rounded to 0.
+        # signs. A random partition would let one heavy column set the scale of every
+        # group: with a model whose weight sits on a few rows most keys would round to 0.
         self.group = energy_balanced_groups(w64**2, key_dim, rng)
         self.signed = ((rng.integers(0, 2, width) * 2 - 1) * w64).astype(np.float32)
         self.yaw_group = rng.permutation(np.arange(width) % max(yaw_dim, 1)).astype(np.int64)

@@ -114,8 +114,8 @@ class GramStepper:
     CG warm-started at the previous W. Since G ⪰ 0 and Λ, Λ_ref are positive diagonals,
     cond((G+Λ_ref)⁻¹(G+Λ)) ≤ max(1, max ρ) / min(1, min ρ) with ρ = Λ/Λ_ref — an O(d) bound.
     Refactor only when that bound exceeds KAPPA_MAX, when the last PCG needed more than
-    cg_maxiter/2 iterations (one factorisation ≈ 20–25 PCG iterations at d = 8k, measured),
-    or when CG misses cg_rtol within cg_maxiter. Measured at n = 10k, d = 7872: 4–17 PCG
+    cg_maxiter/2 iterations (one factorisation costs about 20–25 PCG iterations at d = 8k),
+    or when CG misses cg_rtol within cg_maxiter. At n = 10k, d = 7872 that is 4–17 PCG
     iterations (~0.16 s each) per IRLS step instead of a ~3–4 s factorisation.
     """
 
@@ -185,7 +185,7 @@ def _pcg(G: np.ndarray, lam: np.ndarray, B: np.ndarray, W0: np.ndarray, precond,
 
 def symmetric_product(G: np.ndarray, P: np.ndarray) -> np.ndarray:
     """G @ P for symmetric G and few columns: one dsymv per column reads half of G (≈2x faster
-    than a thin gemm, measured); G.T is the F-ordered view BLAS wants, equal to G."""
+    than a thin gemm); G.T is the F-ordered view BLAS wants, equal to G."""
     Gf = G if G.flags.f_contiguous else G.T
     if not Gf.flags.f_contiguous or P.shape[1] > 8:
         return G @ P

@@ -1,4 +1,4 @@
-"""VBRL solver: group-sparse least squares by IRLS (DESIGN.md §2, paper Eq. 3, Alg. 1).
+"""VBRL solver: group-sparse least squares by IRLS (docs/design.md §2, paper Eq. 3, Alg. 1).
 
 Notation: X ∈ R^{d×n} (one column per scan), Y ∈ {0,1}^{n×c}, W ∈ R^{d×c}.
 Row r of W belongs to voxel ``voxel_of_row[r]`` and modality ``modality_of_row[r]``.

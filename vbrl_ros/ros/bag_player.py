@@ -20,8 +20,8 @@ high rate), messages go out back to back until the schedule is caught up.
 QoS: cloud, odometry and pose publishers are reliable with keep-all history
 by default. Replay exists to evaluate loop closure, so a lost cloud would
 silently change the result: a keep-all writer never discards a sample that a
-reliable subscriber has not acknowledged (keep-last 10 lost 15 of 50
-120k-point clouds at ``--rate 1000``; keep-all lost none), and a reliable
+reliable subscriber has not acknowledged (keep-last loses large clouds at
+high rates; keep-all does not), and a reliable
 publisher still matches subscribers that ask for sensor-data (best-effort)
 QoS. ``cloud_qos="sensor"`` makes clouds best-effort like a real driver, to
 test a node under loss. The price of keep-all: samples wait in the writer

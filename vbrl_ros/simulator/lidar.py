@@ -27,7 +27,7 @@ from .geometry import REFLECTIVITY, Material, PrimitiveKind
 from .scene import Hits, PairLists, Scene
 
 # Default vertical field of view per beam count, roughly the common sensors
-# (VLP-16, HDL-32E, the 64-beam spec of the issue, OS-128).
+# (VLP-16, HDL-32E, a 64-beam spinning LiDAR, OS-128).
 DEFAULT_VERTICAL_FOV_DEG = {16: (-15.0, 15.0), 32: (-30.0, 10.0), 64: (-25.0, 15.0), 128: (-22.5, 22.5)}
 _RANGE_FALLOFF_M = 60.0  # range at which the received power has halved (before weather)
 

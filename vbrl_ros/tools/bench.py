@@ -1,4 +1,4 @@
-"""``vbrl bench``: the speed targets of DESIGN.md §5, measured and printed as a table.
+"""``vbrl bench``: the speed targets of docs/design.md §5, measured and printed as a table.
 
 Figures are medians over repeated runs in one process, so compare ratios
 within one run rather than absolute times across machines. The featurizer runs

@@ -1,4 +1,4 @@
-"""``vbrl eval``: full VBRL, its three ablations and Scan Context, side by side (DESIGN.md §3).
+"""``vbrl eval``: full VBRL, its three ablations and Scan Context, side by side (docs/design.md §3).
 
 - one source: P1, online loop closure (query i against keyframes 0..i−E);
 - ``--against DB``: P2, queries from the first source, database from DB;
@@ -42,7 +42,7 @@ if TYPE_CHECKING:
     from vbrl_ros.evaluation.methods import SourceDescriptors
 
 TOP_K = 5  # Recall@5
-REPORT_RADII = (3.0, 5.0)  # DESIGN.md §3: report 3 m and 5 m
+REPORT_RADII = (3.0, 5.0)  # docs/design.md §3: report 3 m and 5 m
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

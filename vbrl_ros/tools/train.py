@@ -46,7 +46,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="MODEL.npz")
     parser.add_argument("--labels", help="comma-separated scenario label per SOURCE")
     parser.add_argument("--targets", choices=TARGETS, default="scenarios",
-                        help="what Y labels: the scenario of each source (DESIGN.md, default) or "
+                        help="what Y labels: the scenario of each source (docs/design.md, default) or "
                              "places, cells of --place-size metres (needs poses; better on the "
                              "simulator's long-term protocol, see README)")
     parser.add_argument("--place-size", type=float, default=6.0, metavar="M",
