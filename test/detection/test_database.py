@@ -398,7 +398,7 @@ def test_polar_candidates_carry_the_yaw_of_the_best_shift(tmp_path):
 
 
 def test_recency_exclusion_is_exact_in_a_large_database():
-    db = KeyframeDatabase(SCORER, model_id="m", parameters=IndexParameters(candidates=4))  # few candidates: mask must act first
+    db = KeyframeDatabase(SCORER, "m", IndexParameters(candidates=4))  # few candidates: mask must act first
     x = np.random.default_rng(0).normal(size=(3000, db.n_active)).astype(np.float32)
     for i, v in enumerate(x):
         db.add(v, stamp=float(i), session="B" if i % 3 == 0 else "A")

@@ -309,7 +309,8 @@ def test_state_round_trip(tmp_path, storage):
     legacy = KeyframeIndex.from_state(first)
     defaults = KeyframeIndex(weights, IndexParameters(sectors=12)).parameters
     assert legacy.parameters.complete_rows == defaults.complete_rows == 8
-    assert (legacy.parameters.refine_dim, legacy.parameters.scan_pool) == (40, 4)  # all 40 columns, 4x the candidates
+    # all 40 columns, 4x the candidates
+    assert (legacy.parameters.refine_dim, legacy.parameters.scan_pool) == (40, 4)
     assert legacy.parameters.bound_shifts == 12  # every shift
     with pytest.raises(ValueError, match="lacks"):
         KeyframeIndex.from_state({"index_format": np.array("vbrl_ros.keyframe_index")})

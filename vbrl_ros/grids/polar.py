@@ -33,7 +33,8 @@ the next. Any start reaches that bin, so the result depends only on the
 sign tests: the compiled kernel
 (:func:`~vbrl_ros.features.kernels.accumulate_polar_voxels`), which starts from
 the previous point's bin (scans come in azimuth order), and the numpy path
-below agree bit for bit.
+below agree bit for bit. The arctangent's coefficients live in the kernel's
+module, since numba's cache keys on that file: this grid imports them from there.
 """
 
 from __future__ import annotations
