@@ -18,6 +18,13 @@ def _require(condition: bool, name: str, message: str) -> None:
 
 
 GRID_KINDS: tuple[str, ...] = ("cartesian", "polar")
+#: "sensor": the grid is fixed to the sensor (the paper); "ground": each scan is first
+#: levelled on its own ground and heights are measured from it (grids/ground_frame.py).
+FRAMES: tuple[str, ...] = ("sensor", "ground")
+#: The paper's five modalities, in descriptor order.
+PAPER_MODALITIES: tuple[str, ...] = ("covariance", "hog_xy", "hog_xz", "hog_yz", "occupancy")
+#: Every modality a descriptor may hold; "height" is the highest point above the voxel's floor.
+MODALITY_NAMES: tuple[str, ...] = (*PAPER_MODALITIES, "height")
 
 #: Settings only one kind of grid reads; the other kind must leave them at their
 #: defaults, so that one grid has one dict (and one model identity hash) — see to_dict.
@@ -40,6 +47,10 @@ class VoxelGridConfig:
     clockwise. A scan rotated about z by whole sectors permutes the sectors of
     its descriptor (see :mod:`vbrl_ros.grids.polar`).
 
+    ``frame="ground"`` levels each scan on its own ground first and measures z from
+    it, so that layers mean the same on any mounting; ``"sensor"`` (default) is the
+    sensor's own frame, as in the paper.
+
     Points outside the grid are dropped.
     """
 
@@ -50,9 +61,15 @@ class VoxelGridConfig:
     rings: int = 8
     sectors: int = 24
     max_range: float = 40.0
+    frame: str = "sensor"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "z_edges", tuple(float(z) for z in self.z_edges))
+        _require(
+            self.frame in FRAMES,
+            "grid.frame",
+            f"must be one of {', '.join(FRAMES)}, got {self.frame!r}",
+        )
         _require(
             self.kind in GRID_KINDS,
             "grid.kind",
@@ -141,12 +158,20 @@ class VoxelGridConfig:
         unused = (*_POLAR_ONLY, "kind") if self.kind == "cartesian" else _CARTESIAN_ONLY
         for name in unused:
             del out[name]
+        if self.frame == "sensor":  # grids from before the ground frame keep their identity
+            del out["frame"]
         return out
 
 
 @dataclass(frozen=True)
 class FeatureConfig:
-    """Per-voxel features: covariance, three HOG snapshots, subvoxel occupancy.
+    """Per-voxel features: the paper's covariance, three HOG snapshots and subvoxel
+    occupancy, and the highest point above the voxel's floor (``height``).
+
+    ``modalities`` picks which, in descriptor order (default: the paper's five).
+    ``normalise`` scales each modality's block of a descriptor to unit L1 norm, so
+    Eq. 4 compares the shape of two scans' feature distributions, not how much of
+    each scan was seen (a sparse or partly blind scan is not near every other sparse one).
 
     Each voxel's points are rasterised on its XY, XZ and YZ faces into
     ``raster_size`` x ``raster_size`` snapshots (point counts scaled to a
@@ -160,8 +185,23 @@ class FeatureConfig:
     hog_orientations: int = 9
     hog_cells: int = 1
     min_points: int = 3
+    modalities: tuple[str, ...] = PAPER_MODALITIES
+    normalise: bool = False
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "modalities", tuple(self.modalities))
+        _require(
+            len(self.modalities) > 0
+            and all(m in MODALITY_NAMES for m in self.modalities)
+            and len(set(self.modalities)) == len(self.modalities),
+            "features.modalities",
+            f"must be distinct names out of {', '.join(MODALITY_NAMES)}, got {list(self.modalities)!r}",
+        )
+        _require(
+            isinstance(self.normalise, bool),
+            "features.normalise",
+            f"must be true or false, got {self.normalise!r}",
+        )
         _require(
             # a power of two: voxelization splits sub-cells with bit shifts,
             # and occupancy octants are raster halves
@@ -188,6 +228,17 @@ class FeatureConfig:
             f"must be an integer >= 1, got {self.min_points!r}",
         )
 
+    def to_dict(self) -> dict[str, Any]:
+        """Every setting; the ones added after the paper's only when not at their defaults,
+        so older model files keep their identity hash."""
+        out = asdict(self)
+        out["modalities"] = list(self.modalities)
+        if self.modalities == PAPER_MODALITIES:
+            del out["modalities"]
+        if not self.normalise:
+            del out["normalise"]
+        return out
+
     @property
     def hog_length(self) -> int:
         """Length of one plane's HOG vector."""
@@ -202,7 +253,7 @@ class VBRLConfig:
     features: FeatureConfig = field(default_factory=FeatureConfig)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"grid": self.grid.to_dict(), "features": asdict(self.features)}
+        return {"grid": self.grid.to_dict(), "features": self.features.to_dict()}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "VBRLConfig":

@@ -1,8 +1,10 @@
-"""The five VBRL feature modalities of every voxel, and the descriptor layout.
+"""The VBRL feature modalities of every voxel, and the descriptor layout.
 
 A scan's descriptor is one vector of length d. Its rows are grouped
-modality-major: all voxels' covariance features, then all voxels' XY-HOG,
-XZ-HOG, YZ-HOG and finally subvoxel occupancy; inside a modality, voxel-major.
+modality-major, in the configuration's modality order (the paper's:
+covariance, XY-HOG, XZ-HOG, YZ-HOG, subvoxel occupancy; and ``height``, the
+top of each voxel's points, see :mod:`.height_map`); inside a modality,
+voxel-major.
 :class:`FeatureLayout` says which voxel and modality each row belongs to —
 the groups of the structured-sparsity norms and of the score.
 
@@ -11,6 +13,10 @@ rows are the same feature in different sectors (``sector_rows``), and the
 weights are tied across sectors: a sparsity group and an importance wV
 belong to a (layer, ring) column of voxels (``weight_layout``), so a scan
 compared under a circular sector shift is weighed the same in every sector.
+
+A grid in the ground frame (``grid.frame="ground"``) levels each scan first
+(:mod:`vbrl_ros.grids.ground_frame`); :meth:`Featurizer.describe_views` describes
+one levelled scan from several nearby viewpoints, for translation search.
 
 The hot path (:meth:`Featurizer.modalities`) reads the points once in a
 compiled kernel (:mod:`vbrl_ros.features.kernels`); :meth:`Featurizer.modalities_numpy`
@@ -25,12 +31,21 @@ from functools import cached_property
 
 import numpy as np
 
-from vbrl_ros.config import VBRLConfig
+from vbrl_ros.config import MODALITY_NAMES, PAPER_MODALITIES, VBRLConfig
+from vbrl_ros.features.height_map import (
+    CELL_M,
+    MARGIN_M,
+    cartesian_heights,
+    height_cells,
+    polar_heights,
+)
 from vbrl_ros.features.hog import hog_batch
 from vbrl_ros.features.kernels import accumulate_polar_voxels, accumulate_voxels
+from vbrl_ros.grids.ground_frame import GroundFrame, ground_frame
 from vbrl_ros.grids.kinds import make_grid
 
-MODALITIES: tuple[str, ...] = ("covariance", "hog_xy", "hog_xz", "hog_yz", "occupancy")
+#: The paper's modalities (the default descriptor); ``MODALITY_NAMES`` adds ``height``.
+MODALITIES: tuple[str, ...] = PAPER_MODALITIES
 COVARIANCE_ENTRIES = 6  # xx, yy, zz, xy, xz, yz
 OCCUPANCY_BITS = 8  # one per octant
 
@@ -139,15 +154,12 @@ class Featurizer:
         self.config = config or VBRLConfig()
         self.grid = make_grid(self.config.grid)
         f = self.config.features
+        per_voxel = {"covariance": COVARIANCE_ENTRIES, "hog_xy": f.hog_length, "hog_xz": f.hog_length,
+                     "hog_yz": f.hog_length, "occupancy": OCCUPANCY_BITS, "height": 1}
+        assert set(per_voxel) == set(MODALITY_NAMES)
         self.layout = FeatureLayout(
             n_voxels=self.grid.n_voxels,
-            features_per_modality=(
-                COVARIANCE_ENTRIES,
-                f.hog_length,
-                f.hog_length,
-                f.hog_length,
-                OCCUPANCY_BITS,
-            ),
+            features_per_modality=tuple(per_voxel[m] for m in f.modalities),
             sectors=self.config.grid.n_sectors,
         )
 
@@ -155,17 +167,81 @@ class Featurizer:
     def dimension(self) -> int:
         return self.layout.dimension
 
-    def describe(self, points: np.ndarray) -> np.ndarray:
-        """Descriptor (d,) float32 of a scan given as (N, 3+) points (extra columns ignored)."""
-        return np.concatenate([m.ravel() for m in self.modalities(points)]).astype(np.float32)
+    @property
+    def modality_names(self) -> tuple[str, ...]:
+        return self.config.features.modalities
+
+    def frame(self, points: np.ndarray, gravity: np.ndarray | None = None) -> GroundFrame:
+        """The frame the grid reads ``points`` (sensor frame) in: levelled on the scan's ground
+        (``gravity``: 3x3 sensor -> gravity-aligned rotation, if known) or the sensor's own."""
+        if self.config.grid.frame == "ground":
+            return ground_frame(_as_points(points), gravity)
+        return GroundFrame.identity()
+
+    def describe(self, points: np.ndarray, gravity: np.ndarray | None = None) -> np.ndarray:
+        """Descriptor (d,) float32 of a scan given as (N, 3+) sensor-frame points (extra
+        columns ignored); see :meth:`frame` for ``gravity``."""
+        points = _as_points(points)
+        frame = self.frame(points, gravity)
+        return self.describe_framed(points if self.config.grid.frame == "sensor" else frame.apply(points))
+
+    def describe_framed(self, points: np.ndarray) -> np.ndarray:
+        """Descriptor of points already in the grid's frame (see :meth:`frame`)."""
+        return self._vector(self.modalities(points))
+
+    def describe_views(self, points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+        """(len(offsets), d) float32: the scan (in the grid's frame) described from each of the
+        viewpoints (x, y) in ``offsets`` (metres), as if the sensor had stood there.
+
+        Height-only descriptors read every view from one height map (cheap); others re-run the
+        featurizer on shifted points.
+        """
+        offsets = np.asarray(offsets, dtype=np.float64).reshape(-1, 2)
+        points = _as_points(points)
+        if self.modality_names != ("height",):
+            shift = np.zeros(points.shape[1])
+            rows = []
+            for dx, dy in offsets:
+                shift[:2] = dx, dy
+                rows.append(self.describe_framed(points - shift))
+            return np.stack(rows) if rows else np.zeros((0, self.dimension), np.float32)
+        cells = self._height_cells(points)
+        return np.stack([self._vector([self._heights(cells, dx, dy)]) for dx, dy in offsets]
+                        ) if len(offsets) else np.zeros((0, self.dimension), np.float32)
+
+    def _vector(self, blocks: list[np.ndarray]) -> np.ndarray:
+        parts = [b.ravel() for b in blocks]
+        if self.config.features.normalise:  # each modality's block to unit L1 norm
+            parts = [p / total if (total := np.abs(p).sum()) > 0 else p for p in parts]
+        return np.concatenate(parts).astype(np.float32)
+
+    def _height_cells(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        grid = self.config.grid
+        reach = (grid.max_range if grid.kind == "polar" else grid.extent_xy) + MARGIN_M
+        return height_cells(points, reach, CELL_M, self.grid.z_edges)
+
+    def _heights(self, cells: tuple[np.ndarray, np.ndarray, np.ndarray],
+                 dx: float = 0.0, dy: float = 0.0) -> np.ndarray:
+        """The height block (n_voxels, 1) seen from (dx, dy); voxels with fewer than
+        ``min_points`` map cells are empty."""
+        grid, cfg = self.grid, self.config.grid
+        if grid.kind == "polar":
+            bound_cos, bound_sin = grid.angular_bounds(1)
+            top, count = polar_heights(*cells, dx, dy, cfg.max_range, cfg.rings, cfg.sectors,
+                                       bound_cos, bound_sin, cfg.n_layers)
+        else:
+            top, count = cartesian_heights(*cells, dx, dy, cfg.extent_xy, cfg.cells_xy, cfg.n_layers)
+        top[count < self.config.features.min_points] = 0.0
+        return top[:, None]
 
     def modalities(self, points: np.ndarray) -> list[np.ndarray]:
-        """The five per-voxel feature blocks, each (n_voxels, k_i), float64 (compiled path)."""
-        points = np.asarray(points)
-        if points.ndim != 2 or points.shape[1] < 3:
-            raise ValueError(f"points must be an (N, 3) array, got shape {points.shape}")
-        if points.dtype not in (np.float32, np.float64):
-            points = points.astype(np.float64)
+        """The configured per-voxel feature blocks, each (n_voxels, k_i), float64 (compiled
+        path); ``points`` (N, 3+) in the grid's frame."""
+        points = _as_points(points)
+        names = self.modality_names
+        heights = self._heights(self._height_cells(points)) if "height" in names else None
+        if not set(names) & set(PAPER_MODALITIES):
+            return [heights]
         grid, size = self.grid, self.config.features.raster_size
         if grid.kind == "polar":
             bound_cos, bound_sin = grid.angular_bounds(size)
@@ -179,7 +255,11 @@ class Featurizer:
                 points, float(self.config.grid.extent_xy), self.config.grid.cells_xy,
                 grid.z_edges, grid.z_slope, grid.z_intercept, size,
             )
-        return self._finish(*accumulated)
+        return self._select(self._finish(*accumulated), heights)
+
+    def _select(self, paper: list[np.ndarray], heights: np.ndarray | None) -> list[np.ndarray]:
+        blocks = dict(zip(PAPER_MODALITIES, paper), height=heights)
+        return [blocks[name] for name in self.modality_names]
 
     def modalities_numpy(self, points: np.ndarray) -> list[np.ndarray]:
         """Reference implementation of :meth:`modalities` in plain numpy (same results).
@@ -187,6 +267,36 @@ class Featurizer:
         Grid-agnostic: the grid's assignment gives sub-cells and (for the polar
         grid, voxel-local) coordinates; everything after is the same.
         """
+        points = _as_points(points)
+        return self._select(self._paper_numpy(points), self._heights_numpy(points))
+
+    def _heights_numpy(self, points: np.ndarray) -> np.ndarray:
+        """The height block from first principles: every map column's top, its centre
+        assigned by the grid, the top of the columns per voxel."""
+        cfg, edges = self.config.grid, self.grid.z_edges
+        reach = (cfg.max_range if cfg.kind == "polar" else cfg.extent_xy) + MARGIN_M
+        x, y, z = (np.asarray(points[:, k], dtype=np.float64) for k in range(3))
+        ok = (np.abs(x) < reach) & (np.abs(y) < reach) & (z >= edges[0]) & (z < edges[-1])
+        x, y, z = x[ok], y[ok], z[ok]
+        layer = np.searchsorted(edges, z, side="right") - 1
+        side = int(2.0 * reach / CELL_M) + 1
+        ix, iy = ((x + reach) / CELL_M).astype(np.intp), ((y + reach) / CELL_M).astype(np.intp)
+        column = (layer * side + iy) * side + ix
+        top = np.full(side * side * cfg.n_layers, -1.0)
+        np.maximum.at(top, column, z - edges[layer])
+        cells = np.flatnonzero(top >= 0)
+        rest = cells % (side * side)
+        centres = np.column_stack([(rest % side + 0.5) * CELL_M - reach, (rest // side + 0.5) * CELL_M - reach,
+                                   edges[cells // (side * side)]])  # each column at its layer's floor
+        voxel = self.grid.assign(centres).voxel
+        v = self.grid.n_voxels
+        out = np.zeros(v + 1)
+        np.maximum.at(out, voxel, top[cells])
+        count = np.bincount(voxel, minlength=v + 1)
+        out[count < self.config.features.min_points] = 0.0
+        return out[:v, None]
+
+    def _paper_numpy(self, points: np.ndarray) -> list[np.ndarray]:
         v = self.grid.n_voxels
         size = self.config.features.raster_size
         a = self.grid.assign(points, subdivisions=size)
@@ -231,6 +341,15 @@ class Featurizer:
         for block in blocks:
             block[~kept] = 0.0
         return blocks
+
+
+def _as_points(points: np.ndarray) -> np.ndarray:
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise ValueError(f"points must be an (N, 3) array, got shape {points.shape}")
+    if points.dtype not in (np.float32, np.float64):
+        points = points.astype(np.float64)
+    return points
 
 
 def _histogram(index: np.ndarray, length: int) -> np.ndarray:

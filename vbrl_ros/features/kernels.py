@@ -123,6 +123,29 @@ def _approximate_azimuth(x: float, y: float) -> float:
     return a
 
 
+@njit(cache=True, nogil=True, inline="always")
+def angular_bin(x, y, bound_cos, bound_sin, bins, angle_scale, start) -> int:
+    """The polar grid's angular bin of (x, y): the unique b with the point on or left of
+    boundary b and right of boundary b+1 (see grids/polar.py).
+
+    Walking from ANY start reaches it; ``start`` is a guess (scans come in azimuth order,
+    so the previous point's bin is usually right: two sign tests instead of the arctangent).
+    """
+    b = start
+    if not (bound_cos[b] * y - bound_sin[b] * x >= 0
+            and not bound_cos[b + 1] * y - bound_sin[b + 1] * x >= 0):
+        b = min(int(_approximate_azimuth(x, y) * angle_scale), bins - 1)
+        for _ in range(bins):
+            if not bound_cos[b] * y - bound_sin[b] * x < 0:
+                break
+            b = bins - 1 if b == 0 else b - 1
+        for _ in range(bins):
+            if not bound_cos[b + 1] * y - bound_sin[b + 1] * x >= 0:
+                break
+            b = 0 if b == bins - 1 else b + 1
+    return b
+
+
 @njit(cache=True, nogil=True)
 def accumulate_polar_voxels(
     points: np.ndarray,  # (N, >=3) float32 or float64
@@ -174,22 +197,7 @@ def accumulate_polar_voxels(
             if z >= z_edges[e]:
                 layer += 1
         sz = (z * z_slope[layer] + z_intercept[layer]) * size
-        # The angular bin is the unique b with the point on or left of boundary b and right
-        # of boundary b+1 (see grids/polar.py); walking from ANY start reaches it. Scans come in
-        # azimuth order, so the previous point's bin is usually right: two sign tests
-        # instead of the arctangent guess.
-        b = previous_bin
-        if not (bound_cos[b] * y - bound_sin[b] * x >= 0
-                and not bound_cos[b + 1] * y - bound_sin[b + 1] * x >= 0):
-            b = min(int(_approximate_azimuth(x, y) * angle_scale), bins - 1)
-            for _ in range(bins):
-                if not bound_cos[b] * y - bound_sin[b] * x < 0:
-                    break
-                b = bins - 1 if b == 0 else b - 1
-            for _ in range(bins):
-                if not bound_cos[b + 1] * y - bound_sin[b + 1] * x >= 0:
-                    break
-                b = 0 if b == bins - 1 else b + 1
+        b = angular_bin(x, y, bound_cos, bound_sin, bins, angle_scale, previous_bin)
         previous_bin = b
         isr = min(int(sr), limit_r - 1)
         isz = min(int(sz), layers * size - 1)

@@ -246,6 +246,19 @@ class KeyframeIndex:
             self._complete(q, rows, distances, shifts, wanted, top_k)
         return self._result(q, rows, distances, shifts, top_k)
 
+    def distances_at_shifts(self, query: np.ndarray, rows: np.ndarray,
+                            shifts: np.ndarray) -> np.ndarray:
+        """(len(rows), m) float32: D_k(query, keyframe) at each row's ``shifts`` (m per row)."""
+        rows = np.ascontiguousarray(rows, dtype=np.int64)
+        shifts = np.ascontiguousarray(shifts, dtype=np.int64).reshape(len(rows), -1)
+        return self._at_shifts(self.check(query), rows, shifts)
+
+    def refined_yaws(self, query: np.ndarray, rows: np.ndarray, distances: np.ndarray,
+                     shifts: np.ndarray) -> np.ndarray:
+        """Yaws of ``shifts`` (refined by a parabola if the parameters say so), as in searches."""
+        return self._result(self.check(query), np.asarray(rows, np.int64), np.asarray(distances, np.float32),
+                            np.asarray(shifts, np.int64), len(rows)).yaws if len(rows) else np.empty(0)
+
     def _candidates(self, key: np.ndarray, refine_key: np.ndarray, mask: np.ndarray | None,
                     top_k: int) -> tuple[np.ndarray, np.ndarray]:
         """Stage 1: the candidate rows (ascending) and their key scores (lower = closer).

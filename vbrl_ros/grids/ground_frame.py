@@ -1,0 +1,158 @@
+"""A sensor-independent frame: each scan levelled on its own ground, heights measured from it.
+
+Real sensors sit 0.5-2.5 m above the ground and hand-held ones tilt 20 degrees and more,
+so height bands fixed to the sensor mean different things on different robots. Each scan
+is rotated so that the ground plane under it is horizontal (heading kept) and shifted so
+that the ground is at z = 0: the same place then gives the same heights whatever carried
+the sensor.
+
+The ground is the plane through the lowest points of most ~1 m columns around the sensor:
+a RANSAC over those lowest points (a fixed sample sequence, so a scan always gives the same
+frame) that prefers planes with few points below them, refined by least squares on its
+inliers. With a gravity rotation (odometry's roll and pitch) only the height is fitted.
+Without a ground in sight (indoors on a mast, a sensor looking up) the scan keeps its tilt
+and its lowest points stand in for the ground.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+CELL_M = 1.0  # lowest-point cell: wide enough to reach the ground between objects
+MIN_RANGE_M, MAX_RANGE_M = 1.0, 30.0
+INLIER_M = 0.15
+MAX_TILT_DEG = 30.0
+HYPOTHESES = 128
+MIN_INLIERS = 8
+FALLBACK_HEIGHT_M = (0.3, 3.0)  # without a ground plane: the lowest points, within these bounds
+
+
+@dataclass(frozen=True)
+class GroundFrame:
+    """Rotation R (sensor -> levelled) and the sensor's height h above the ground:
+    p_levelled = R p_sensor + (0, 0, h)."""
+
+    rotation: np.ndarray  # (3, 3)
+    height: float
+    found: bool  # False: no ground plane was found (see the module docstring)
+
+    @classmethod
+    def identity(cls) -> "GroundFrame":
+        """The sensor's own frame (grids with ``frame="sensor"``)."""
+        return cls(np.eye(3), 0.0, False)
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The 4x4 homogeneous transform sensor -> levelled."""
+        T = np.eye(4)
+        T[:3, :3] = self.rotation
+        T[2, 3] = self.height
+        return T
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3+) sensor-frame points in this frame, as float64 (N, 3)."""
+        xyz = np.asarray(points, dtype=np.float64)[:, :3] @ self.rotation.T
+        xyz[:, 2] += self.height
+        return xyz
+
+
+@njit(cache=True, nogil=True)
+def lowest_points(points, cell, min_range, max_range):
+    """The lowest finite point of every occupied cell x cell column within the range ring."""
+    n_side = int(2.0 * max_range / cell) + 1
+    low = np.full(n_side * n_side, np.inf)
+    idx = np.full(n_side * n_side, -1, np.int64)
+    r0, r1 = min_range * min_range, max_range * max_range
+    for i in range(points.shape[0]):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+            continue
+        rr = x * x + y * y
+        if rr < r0 or rr >= r1:
+            continue
+        c = int((x + max_range) / cell) * n_side + int((y + max_range) / cell)
+        if z < low[c]:
+            low[c] = z
+            idx[c] = i
+    count = 0
+    for c in range(idx.shape[0]):
+        if idx[c] >= 0:
+            count += 1
+    out = np.empty((count, 3))
+    k = 0
+    for c in range(idx.shape[0]):
+        if idx[c] >= 0:
+            for a in range(3):
+                out[k, a] = points[idx[c], a]
+            k += 1
+    return out
+
+
+def _rotation_onto_z(normal: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking the unit vector ``normal`` onto +z (keeps the heading)."""
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(normal, z)
+    s, c = float(np.linalg.norm(axis)), float(normal @ z)
+    if s < 1e-12:
+        return np.eye(3)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + k + k @ k * ((1.0 - c) / (s * s))
+
+
+def _sample_triples(n: int, count: int) -> np.ndarray:
+    rng = np.random.default_rng(0x5EED)  # fixed: the same scan always gives the same frame
+    return rng.integers(0, n, size=(count, 3))  # repeated indices give no normal: dropped
+
+
+def fit_ground(low: np.ndarray, max_tilt_deg: float = MAX_TILT_DEG) -> tuple[np.ndarray, float] | None:
+    """(unit normal with n_z > 0, height of the origin above the plane) or None."""
+    if len(low) < MIN_INLIERS:
+        return None
+    tri = low[_sample_triples(len(low), HYPOTHESES)]  # (H, 3, 3)
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norms = np.linalg.norm(normals, axis=1)
+    ok = norms > 1e-9
+    normals = normals[ok] / norms[ok, None]
+    normals *= np.sign(normals[:, 2:3]) + (normals[:, 2:3] == 0)
+    heights = -np.einsum("hk,hk->h", normals, tri[ok, 0])  # n.p + h = 0 on the plane
+    ok = (normals[:, 2] >= math.cos(math.radians(max_tilt_deg))) & (heights > 0)
+    if not ok.any():
+        return None
+    normals, heights = normals[ok], heights[ok]
+    signed = low @ normals.T + heights  # (cells, H): height of each lowest point above each plane
+    inliers = np.abs(signed) < INLIER_M
+    # The ground has most lowest points on it and few below it (below = a wrong, raised plane).
+    score = inliers.sum(0) - 3 * (signed < -3 * INLIER_M).sum(0)
+    best = int(np.argmax(score))
+    chosen = low[inliers[:, best]]
+    if len(chosen) < MIN_INLIERS:
+        return None
+    centre = chosen.mean(0)
+    normal = np.linalg.svd(chosen - centre)[2][2]
+    normal = normal if normal[2] > 0 else -normal
+    return normal, float(-normal @ centre)
+
+
+def ground_frame(points: np.ndarray, gravity_rotation: np.ndarray | None = None) -> GroundFrame:
+    """The levelled, ground-referenced frame of one scan given in the sensor frame.
+
+    ``gravity_rotation`` (3x3, sensor -> a gravity-aligned frame, e.g. odometry's roll and
+    pitch) replaces the fitted tilt; only the height is fitted then.
+    """
+    xyz = np.ascontiguousarray(np.asarray(points, dtype=np.float64)[:, :3])
+    base = np.eye(3) if gravity_rotation is None else np.asarray(gravity_rotation, np.float64)
+    if gravity_rotation is not None:
+        xyz = xyz @ base.T
+    low = lowest_points(xyz, CELL_M, MIN_RANGE_M, MAX_RANGE_M)
+    fit = fit_ground(low, max_tilt_deg=MAX_TILT_DEG if gravity_rotation is None else 5.0)
+    if fit is None:
+        below = -float(np.percentile(low[:, 2], 10)) if len(low) else FALLBACK_HEIGHT_M[1]
+        return GroundFrame(base, float(np.clip(below, *FALLBACK_HEIGHT_M)), False)
+    normal, height = fit
+    if gravity_rotation is not None:  # keep the given tilt; the plane only sets the height
+        return GroundFrame(base, height * normal[2], True)
+    return GroundFrame(_rotation_onto_z(normal) @ base, height, True)
