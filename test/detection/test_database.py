@@ -181,7 +181,7 @@ def test_bytes_per_keyframe_is_descriptor_key_and_metadata():
                                     "metadata": METADATA_BYTES_PER_KEYFRAME}
     full = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), model_id="default")
     # 256 + 512 four-bit key entries (scan key, refine key)
-    assert full.bytes_per_keyframe() == 7872 * 4 + 384 + METADATA_BYTES_PER_KEYFRAME == 32028
+    assert full.bytes_per_keyframe() == 7872 * 4 + 384 + METADATA_BYTES_PER_KEYFRAME == 32156
     half = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), "default", IndexParameters(storage="float16"))
     assert half.bytes_per_keyframe() == 7872 * 2 + 384 + METADATA_BYTES_PER_KEYFRAME
     assert full.cloud_bytes_per_keyframe() == 0.0
@@ -296,9 +296,35 @@ def test_other_version_model_and_pruning_are_refused(tmp_path):
     pruned = WeightedL1Scorer(WEIGHTS, prune=0.5)
     _assert_refused(path, "different pruning", scorer=pruned)
     _rewrite(path, format_version=np.array(1))  # before the index: no index arrays
-    _assert_refused(path, "format version 1; this vbrl_ros reads version 2")
-    _rewrite(path, format_version=np.array(3))
-    _assert_refused(path, "format version 3")
+    _assert_refused(path, "format version 1; this vbrl_ros reads versions 2, 3")
+    _rewrite(path, format_version=np.array(4))
+    _assert_refused(path, "format version 4")
+
+
+def test_version_2_files_load_with_sensor_frames(tmp_path):
+    """Files from before frames were stored: clouds in the sensor frame, identity frames."""
+    db, _ = make_db(3)
+    path = db.save(tmp_path / "kf.npz")
+    with np.load(path) as archive:
+        arrays = {k: archive[k] for k in archive.files if k != "frames"}
+    arrays["format_version"] = np.array(2)
+    np.savez(path, **arrays)
+    loaded = KeyframeDatabase.load(path, WeightedL1Scorer(WEIGHTS), "model-A")
+    assert len(loaded) == 3 and np.array_equal(loaded.frame(2), np.eye(4))
+    _rewrite(path, format_version=np.array(3))  # a version 3 file must have them
+    _assert_refused(path, "lacks frames")
+
+
+def test_frames_round_trip(tmp_path):
+    db, _ = make_db(0)
+    frame = np.eye(4)
+    frame[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    frame[2, 3] = 1.7
+    db.add(np.ones(db.n_active, np.float32), 1.0, "s", frame=frame)
+    loaded = KeyframeDatabase.load(db.save(tmp_path / "kf.npz"), WeightedL1Scorer(WEIGHTS), "model-A")
+    assert np.array_equal(loaded.frame(0), frame)
+    with pytest.raises(ValueError, match="frame must be a finite 4x4"):
+        db.add(np.ones(db.n_active, np.float32), 2.0, "s", frame=np.full((4, 4), np.nan))
 
 
 def test_inconsistent_contents_are_refused(tmp_path):
@@ -333,7 +359,7 @@ def test_index_arrays_are_checked_on_load(tmp_path):
     path = db.save(tmp_path / "kf.npz")
     _rewrite(path, index_format_version=np.array(1))
     _assert_refused(path, "keyframe index state version")
-    assert DATABASE_FORMAT_VERSION == 2
+    assert DATABASE_FORMAT_VERSION == 3
 
 
 # -- index delegation, float16, polar --------------------------------------------------

@@ -2,8 +2,9 @@
 
 Per keyframe: the *compact* standardised descriptor (only the scorer's active
 rows — rows the learned sparsity switched off cost no memory), the stamp, the
-session, a unique keyframe id, an optional pose and an optional downsampled
-cloud for geometric verification.
+session, a unique keyframe id, an optional pose, the keyframe's grid frame
+(sensor -> levelled transform, identity for sensor-frame grids) and an optional
+downsampled cloud for geometric verification, stored in that frame.
 
 The descriptors live in one place, a :class:`~vbrl_ros.index.keyframe_index.KeyframeIndex`
 (float32 or float16, next to its small search keys), which also answers
@@ -31,12 +32,13 @@ from vbrl_ros.detection.database_file import SavedDatabase, read_database, write
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.keyframe_store import grown
 from vbrl_ros.index.parameters import IndexParameters
+from vbrl_ros.index.translation_search import search_views
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
 _INITIAL_CAPACITY = 64
 # Fixed per-keyframe metadata: stamp f64 + session index i32 + id i64
-# + pose 4x4 f64 + cloud offset i64.
-METADATA_BYTES_PER_KEYFRAME = 8 + 4 + 8 + 16 * 8 + 8
+# + pose and frame 4x4 f64 + cloud offset i64.
+METADATA_BYTES_PER_KEYFRAME = 8 + 4 + 8 + 2 * 16 * 8 + 8
 
 
 @dataclass(frozen=True)
@@ -54,6 +56,7 @@ class Candidate:
     stamp: float
     session: str
     yaw: float = 0.0
+    offset: tuple[float, float] = (0.0, 0.0)  # the keyframe's position in the query's grid frame
 
 
 class KeyframeDatabase:
@@ -83,6 +86,7 @@ class KeyframeDatabase:
         self._session_index = np.empty(c, dtype=np.int32)
         self._keyframe_ids = np.empty(c, dtype=np.int64)
         self._poses = np.empty((c, 4, 4), dtype=np.float64)
+        self._frames = np.empty((c, 4, 4), dtype=np.float64)
         self._cloud_offsets = np.zeros(c + 1, dtype=np.int64)  # offsets[0] = 0 always
         self._cloud_points = np.empty((0, 3), dtype=np.float32)
 
@@ -121,6 +125,10 @@ class KeyframeDatabase:
     def poses(self) -> np.ndarray:
         """(n, 4, 4) T_world_lidar of every keyframe; NaN where unknown."""
         return self._poses[: self._size].copy()
+
+    def frame(self, index: int) -> np.ndarray:
+        """The keyframe's 4x4 sensor -> grid-frame transform (its cloud is in the grid frame)."""
+        return self._frames[self._check_index(index)].copy()
 
     def session_of(self, index: int) -> str:
         return self._sessions[self._session_index[self._check_index(index)]]
@@ -175,8 +183,12 @@ class KeyframeDatabase:
         *,
         pose: np.ndarray | None = None,
         cloud: np.ndarray | None = None,
+        frame: np.ndarray | None = None,
     ) -> int:
-        """Append one keyframe; returns its new keyframe id (O(1) amortised + O(d) keys)."""
+        """Append one keyframe; returns its new keyframe id (O(1) amortised + O(d) keys).
+
+        ``frame``: 4x4 sensor -> grid frame of the keyframe (identity by default), the
+        frame ``cloud`` is given in."""
         stamp = float(stamp)
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite, got {stamp}")
@@ -186,6 +198,9 @@ class KeyframeDatabase:
             pose_array = np.asarray(pose, dtype=np.float64)
             if pose_array.shape != (4, 4):
                 raise ValueError(f"pose must be 4x4, got shape {pose_array.shape}")
+        frame_array = np.eye(4) if frame is None else np.asarray(frame, dtype=np.float64)
+        if frame_array.shape != (4, 4) or not np.all(np.isfinite(frame_array)):
+            raise ValueError(f"frame must be a finite 4x4 matrix, got shape {frame_array.shape}")
         points = np.empty((0, 3), np.float32) if cloud is None else np.asarray(cloud, np.float32)
         if points.ndim != 2 or points.shape[1] != 3:
             raise ValueError(f"cloud must have shape (M, 3), got {points.shape}")
@@ -196,6 +211,7 @@ class KeyframeDatabase:
         self._session_index = grown(self._session_index, n + 1)
         self._keyframe_ids = grown(self._keyframe_ids, n + 1)
         self._poses = grown(self._poses, n + 1)
+        self._frames = grown(self._frames, n + 1)
         self._cloud_offsets = grown(self._cloud_offsets, n + 2)
         self._cloud_points = grown(self._cloud_points, self._n_points + len(points))
 
@@ -203,6 +219,7 @@ class KeyframeDatabase:
         self._session_index[n] = self._session_id(str(session))
         self._keyframe_ids[n] = self._next_id
         self._poses[n] = pose_array
+        self._frames[n] = frame_array
         self._cloud_points[self._n_points : self._n_points + len(points)] = points
         self._n_points += len(points)
         self._cloud_offsets[n + 1] = self._n_points
@@ -243,7 +260,24 @@ class KeyframeDatabase:
         ``exact=True`` scans every keyframe (and every sector shift) instead of
         using the index's keys.
         """
-        query = self.index.check(descriptor_compact)
+        return self.query_views(np.asarray(descriptor_compact)[None], np.zeros((1, 2)), top_k=top_k,
+                                session=session, stamp=stamp, exclude_recent_s=exclude_recent_s,
+                                exact=exact)
+
+    def query_views(
+        self,
+        views_compact: np.ndarray,
+        offsets: np.ndarray,
+        *,
+        top_k: int = 5,
+        session: str | None = None,
+        stamp: float | None = None,
+        exclude_recent_s: float = 0.0,
+        exact: bool = False,
+    ) -> list[Candidate]:
+        """:meth:`query` for a query described from several viewpoints ``offsets`` (V, 2), the
+        first the sensor itself (translation search, :mod:`vbrl_ros.index.translation_search`)."""
+        views = np.stack([self.index.check(v) for v in np.asarray(views_compact)])
         if top_k <= 0 or self._size == 0:
             return []
         allowed = None
@@ -254,7 +288,7 @@ class KeyframeDatabase:
                     self._stamps[: self._size] > float(stamp) - float(exclude_recent_s)
                 )
                 allowed = ~recent
-        found = self.index.search_with_yaw(query, top_k, allowed, exact=exact)
+        found = search_views(self.index, views, offsets, top_k, allowed, exact=exact)
         return [
             Candidate(
                 index=int(i),
@@ -263,8 +297,9 @@ class KeyframeDatabase:
                 stamp=float(self._stamps[i]),
                 session=self._sessions[self._session_index[i]],
                 yaw=float(yaw),
+                offset=(float(offset[0]), float(offset[1])),
             )
-            for i, distance, yaw in zip(found.indices, found.distances, found.yaws)
+            for i, distance, yaw, offset in zip(found.indices, found.distances, found.yaws, found.offsets)
         ]
 
     # -- persistence ----------------------------------------------------------
@@ -277,6 +312,7 @@ class KeyframeDatabase:
             session_index=self._session_index[:n],
             keyframe_ids=self._keyframe_ids[:n],
             poses=self._poses[:n],
+            frames=self._frames[:n],
             cloud_offsets=self._cloud_offsets[: n + 1],
             cloud_points=self._cloud_points[:p],
         )
@@ -301,6 +337,7 @@ class KeyframeDatabase:
         db._session_index = c["session_index"].astype(np.int32, copy=False)
         db._keyframe_ids = c["keyframe_ids"].astype(np.int64, copy=False)
         db._poses = c["poses"].astype(np.float64, copy=False)
+        db._frames = c["frames"].astype(np.float64, copy=False)
         db._cloud_offsets = c["cloud_offsets"].astype(np.int64, copy=False)
         db._cloud_points = c["cloud_points"].astype(np.float32, copy=False)
         return db

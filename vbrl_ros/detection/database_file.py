@@ -1,11 +1,13 @@
 """The keyframe database on disk: one versioned ``.npz``, and every check made on loading it.
 
-``format="vbrl_ros.keyframes"``, ``format_version=2``: the per-keyframe
+``format="vbrl_ros.keyframes"``, ``format_version=3``: the per-keyframe
 columns plus the index's arrays under ``index_*``, written atomically and
 loaded with ``allow_pickle=False``. The file records the ``model_id`` and the
 scorer's active rows, because descriptors compacted or standardised for one
-model are meaningless under another. Version 1 files (before the index) are
-refused; rebuild them by replaying the data.
+model are meaningless under another. ``frames`` (n, 4, 4) is each keyframe's
+sensor -> grid-frame transform (its cloud is stored in the grid frame); version 2
+files, which have none, load with identity frames (their clouds are in the sensor
+frame, which is what an identity frame says). Version 1 files are refused.
 """
 
 from __future__ import annotations
@@ -22,9 +24,10 @@ from vbrl_ros.io.npz import one_line, read_npz
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
 DATABASE_FORMAT = "vbrl_ros.keyframes"
-DATABASE_FORMAT_VERSION = 2
+DATABASE_FORMAT_VERSION = 3
+READABLE_VERSIONS = (2, 3)
 COLUMNS = (
-    "stamps", "session_index", "keyframe_ids", "poses", "cloud_offsets", "cloud_points",
+    "stamps", "session_index", "keyframe_ids", "poses", "frames", "cloud_offsets", "cloud_points",
 )  # fmt: skip
 _INDEX_PREFIX = "index_"
 
@@ -74,13 +77,15 @@ def read_database(path: str | Path, scorer: WeightedL1Scorer, model_id: str) -> 
             f"{path} is not a vbrl_ros keyframe database (no format tag '{DATABASE_FORMAT}')"
         )
     version = _scalar_int(contents.get("format_version"))
-    if version != DATABASE_FORMAT_VERSION:
+    if version not in READABLE_VERSIONS:
         raise DatabaseFileError(
             f"{path} has keyframe database format version {version}; this vbrl_ros reads "
-            f"version {DATABASE_FORMAT_VERSION} (rebuild the database by replaying the data)"
+            f"versions {', '.join(map(str, READABLE_VERSIONS))} (rebuild the database by replaying the data)"
         )
     required = ("model_id", "dimension", "active_rows", "sectors", "sessions_json",
                 "next_keyframe_id")
+    if version == 2:  # before frames: clouds are in the sensor frame
+        contents = {**contents, "frames": np.tile(np.eye(4), (len(contents.get("stamps", ())), 1, 1))}
     missing = [key for key in (*required, *COLUMNS) if key not in contents]
     if missing:
         raise DatabaseFileError(f"{path} lacks {', '.join(missing)}")
@@ -117,6 +122,7 @@ def _checked(c: dict[str, np.ndarray], sessions: list[str], scorer: WeightedL1Sc
         "session_index": ((n,), "i"),
         "keyframe_ids": ((n,), "i"),
         "poses": ((n, 4, 4), "f"),
+        "frames": ((n, 4, 4), "f"),
         "cloud_offsets": ((n + 1,), "i"),
     }
     for key, (shape, kind) in expected.items():
@@ -136,6 +142,8 @@ def _checked(c: dict[str, np.ndarray], sessions: list[str], scorer: WeightedL1Sc
         raise ValueError("session index outside the session table")
     if not np.all(np.isfinite(c["stamps"])):
         raise ValueError("stamps contain NaN or inf")
+    if not np.all(np.isfinite(c["frames"])):
+        raise ValueError("frames contain NaN or inf")
     index = KeyframeIndex.from_state(c, _INDEX_PREFIX)
     if len(index) != n:
         raise ValueError(f"the index holds {len(index)} descriptors for {n} keyframes")

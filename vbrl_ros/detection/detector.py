@@ -2,6 +2,10 @@
 
 The node is a thin adapter around :class:`LoopClosureDetector`; tests and
 offline tools drive it directly with numpy scans.
+
+Frames: a model whose grid is in the ground frame levels each scan; its descriptor,
+its stored cloud and the verification live in that levelled frame, and the published
+``T_query_match`` is converted back to the two sensor frames.
 """
 
 from __future__ import annotations
@@ -11,9 +15,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vbrl_ros.detection.database import KeyframeDatabase
-from vbrl_ros.detection.registration import downsample_for_storage, verify_loop, yaw_guess
+from vbrl_ros.detection.database import Candidate, KeyframeDatabase
+from vbrl_ros.detection.registration import Verification, downsample_for_storage, verify_loop, yaw_guess
 from vbrl_ros.detection.settings import DetectorSettings
+from vbrl_ros.index.translation_search import view_offsets
 from vbrl_ros.model.model_file import VBRLModel
 
 
@@ -28,7 +33,7 @@ class LoopClosure:
     query_session: str
     match_session: str
     distance: float  # Eq. 4, lower = more similar
-    yaw: float = 0.0  # recogniser's yaw of T_query_match, radians (polar grid; 0 for Cartesian)
+    yaw: float = 0.0  # recogniser's yaw of T_query_match in the grid frame, radians (0 for Cartesian)
     T_query_match: np.ndarray | None = None
     fitness: float = float("nan")
     covariance: np.ndarray | None = None  # 6x6 over [x, y, z, roll, pitch, yaw]
@@ -54,23 +59,31 @@ class LoopClosureDetector:
         self.database = database
         self.settings = settings
         self.distance_threshold = settings.distance_threshold or model.distance_threshold()
+        step = model.translation_search() if settings.translation_search < 0 else settings.translation_search
+        self.view_offsets = view_offsets(step)
         self.featurizer = model.featurizer()
         self.scorer = database.scorer
 
     def process_keyframe(
-        self, points: np.ndarray, stamp: float, pose: np.ndarray | None = None
+        self, points: np.ndarray, stamp: float, pose: np.ndarray | None = None,
+        gravity: np.ndarray | None = None,
     ) -> KeyframeResult:
+        """``pose``: T_world_lidar (stored); ``gravity``: 3x3 sensor -> gravity-aligned rotation
+        (odometry's roll and pitch) to level by instead of the scan's own ground."""
         cfg = self.settings
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
-        descriptor = self.scorer.compact(self.model.standardize(self.featurizer.describe(points)))
+        frame = self.featurizer.frame(points, gravity)
+        framed = frame.apply(points)
+        views = self.scorer.compact(self.model.standardize(
+            self.featurizer.describe_views(framed, self.view_offsets)))
         t1 = time.perf_counter()
-        candidates = self.database.query(
-            descriptor, top_k=cfg.top_k, session=cfg.session, stamp=stamp,
+        candidates = self.database.query_views(
+            views, self.view_offsets, top_k=cfg.top_k, session=cfg.session, stamp=stamp,
             exclude_recent_s=cfg.exclude_recent_s,
         )
         t2 = time.perf_counter()
-        cloud = downsample_for_storage(points, cfg.verification_voxel) if cfg.verify else None
+        cloud = downsample_for_storage(framed, cfg.verification_voxel) if cfg.verify else None
         closures: list[LoopClosure] = []
         rejected = 0
         for candidate in candidates:
@@ -83,22 +96,41 @@ class LoopClosureDetector:
                 yaw=float(candidate.yaw),
             )
             if cfg.verify:
-                match_cloud = self.database.cloud(candidate.index)
-                # The polar grid's yaw puts KISS-ICP inside its +-10 degree basin
-                # for revisits in any direction (Cartesian: yaw 0, identity guess).
-                check = verify_loop(cloud, match_cloud, initial_guess=yaw_guess(candidate.yaw),
-                                    voxel_size=cfg.verification_voxel)
+                check = self._verify(cloud, candidate)
                 if not check.converged or check.fitness < cfg.min_fitness:
                     rejected += 1
                     continue
+                T, covariance = to_sensor_frames(check, frame.matrix, self.database.frame(candidate.index))
                 closure = LoopClosure(
-                    **{**closure.__dict__, "T_query_match": check.T_query_match,
-                       "fitness": check.fitness, "covariance": check.covariance}
+                    **{**closure.__dict__, "T_query_match": T, "fitness": check.fitness,
+                       "covariance": covariance}
                 )
             closures.append(closure)
         t3 = time.perf_counter()
-        keyframe_id = self.database.add(descriptor, stamp, cfg.session, pose=pose, cloud=cloud)
+        keyframe_id = self.database.add(views[0], stamp, cfg.session, pose=pose, cloud=cloud,
+                                        frame=frame.matrix)
         t4 = time.perf_counter()
         timings.update(describe=1e3 * (t1 - t0), query=1e3 * (t2 - t1),
                        verify=1e3 * (t3 - t2), insert=1e3 * (t4 - t3))
         return KeyframeResult(keyframe_id, closures, len(candidates), rejected, timings)
+
+    def _verify(self, cloud: np.ndarray, candidate: Candidate) -> Verification:
+        # The recogniser's yaw (and, with translation search, the match's position) puts
+        # KISS-ICP inside its +-10 degree basin for revisits in any direction.
+        guess = yaw_guess(candidate.yaw)
+        guess[:2, 3] = candidate.offset
+        return verify_loop(cloud, self.database.cloud(candidate.index), initial_guess=guess,
+                           voxel_size=self.settings.verification_voxel)
+
+
+def to_sensor_frames(check: Verification, query_frame: np.ndarray,
+                     match_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A registration between two grid frames as ``T_query_match`` between the sensors, with its
+    covariance (left perturbation in the query frame) carried into the query sensor's frame."""
+    F_q_inv = np.linalg.inv(query_frame)
+    T = F_q_inv @ check.T_query_match @ match_frame
+    R, t = F_q_inv[:3, :3], F_q_inv[:3, 3]
+    adjoint = np.zeros((6, 6))  # of F_q_inv, for xi = [translation, rotation]
+    adjoint[:3, :3] = adjoint[3:, 3:] = R
+    adjoint[:3, 3:] = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
+    return T, adjoint @ check.covariance @ adjoint.T

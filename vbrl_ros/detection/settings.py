@@ -26,6 +26,7 @@ class DetectorSettings:
     verify: bool = True  # KISS-ICP registration of each candidate
     min_fitness: float = 0.5  # verified closures below this inlier fraction are rejected
     verification_voxel: float = 1.0  # metres; stored clouds and registration use this voxel
+    translation_search: float = -1.0  # metres between query viewpoints; 0: none; -1: the model's
 
     def __post_init__(self) -> None:
         rules = {
@@ -37,6 +38,9 @@ class DetectorSettings:
             "min_fitness": (0.0 <= self.min_fitness <= 1.0, "in [0, 1]"),
             "verification_voxel": (_at_least(self.verification_voxel, 0) and self.verification_voxel > 0,
                                    "a positive number"),
+            "translation_search": (self.translation_search == -1 or (_at_least(self.translation_search, 0)
+                                                                      and self.translation_search <= 10),
+                                   "-1 (the model's), 0 (off) or a step in (0, 10] metres"),
         }
         for name, (ok, rule) in rules.items():
             if not ok:

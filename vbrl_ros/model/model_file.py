@@ -114,6 +114,11 @@ class VBRLModel:
         (``metadata["distance_threshold"]``), else :data:`UNCALIBRATED_DISTANCE_THRESHOLD`."""
         return float(self.metadata.get("distance_threshold", UNCALIBRATED_DISTANCE_THRESHOLD))
 
+    def translation_search(self) -> float:
+        """Step in metres of the viewpoints a query is also described from (0 = none):
+        ``metadata["translation_search"]``, which models trained for it record."""
+        return float(self.metadata.get("translation_search", 0.0))
+
     def identity(self) -> str:
         """Content hash of everything that decides a descriptor's meaning and its score.
 
