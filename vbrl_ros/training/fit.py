@@ -13,6 +13,7 @@ from vbrl_ros.config import VBRLConfig
 from vbrl_ros.features.featurizer import FeatureLayout, Featurizer
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.model.solver import RowGroups, SolverResult, solve_vbrl
+from vbrl_ros.training.pair_targets import pair_targets
 
 #: Features whose spread over the training set is below this are constant:
 #: they keep a unit scale instead of blowing up to 1/0.
@@ -84,6 +85,59 @@ def one_hot(labels: Sequence[int] | np.ndarray, n_classes: int) -> np.ndarray:
     return Y
 
 
+def fit_pairs(
+    descriptors: np.ndarray,
+    positions: np.ndarray,
+    source_of_row: np.ndarray,
+    config: VBRLConfig,
+    lambda1: float = 10.0,
+    lambda2: float = 0.1,
+    *,
+    tol: float = 1e-6,
+    max_iter: int = 100,
+    metadata: dict[str, Any] | None = None,
+) -> TrainingResult:
+    """Standardise, solve Eq. 3 on same/different-place pairs (:mod:`.pair_targets`), build the model."""
+    layout = Featurizer(config).layout
+    descriptors = _checked_descriptors(descriptors, layout)
+    start = time.perf_counter()
+    mean, scale = standardization(descriptors, layout.tie_of_row)
+    pairs = pair_targets((descriptors - mean) / scale, np.asarray(positions, np.float64),
+                         np.asarray(source_of_row), layout)
+    result = solve_vbrl(pairs.X.T, pairs.Y, row_groups(layout), lambda1=lambda1, lambda2=lambda2,
+                        tol=tol, max_iter=max_iter)
+    seconds = time.perf_counter() - start
+    info = {"scans": int(len(descriptors)), "targets": "pairs",
+            "pairs": {"same_place": pairs.n_same, "different_place": pairs.n_different},
+            **_solver_info(result, seconds), **(metadata or {})}
+    model = VBRLModel(config=config, W=result.W, feature_mean=mean, feature_scale=scale,
+                      lambda1=lambda1, lambda2=lambda2, scenarios=["same_place", "different_place"],
+                      metadata=info)
+    return TrainingResult(model=model, solver=result, seconds=seconds)
+
+
+def _checked_descriptors(descriptors: np.ndarray, layout: FeatureLayout) -> np.ndarray:
+    descriptors = np.asarray(descriptors)
+    if descriptors.ndim != 2 or descriptors.shape[1] != layout.dimension:
+        raise ValueError(
+            f"descriptors must be (n, {layout.dimension}) for this configuration, "
+            f"got {descriptors.shape}"
+        )
+    if len(descriptors) < 2:
+        raise ValueError(f"training needs at least 2 scans, got {len(descriptors)}")
+    return descriptors
+
+
+def _solver_info(result: SolverResult, seconds: float) -> dict[str, Any]:
+    return {
+        "solver_path": result.path,
+        "solver_iterations": int(result.iterations),
+        "solver_converged": bool(result.converged),
+        "objective": float(result.objective_history[-1]),
+        "training_seconds": round(seconds, 3),
+    }
+
+
 def fit_model(
     descriptors: np.ndarray,
     labels: Sequence[int] | np.ndarray,
@@ -102,14 +156,7 @@ def fit_model(
     """
     config = config or VBRLConfig()
     layout = Featurizer(config).layout
-    descriptors = np.asarray(descriptors)
-    if descriptors.ndim != 2 or descriptors.shape[1] != layout.dimension:
-        raise ValueError(
-            f"descriptors must be (n, {layout.dimension}) for this configuration, "
-            f"got {descriptors.shape}"
-        )
-    if len(descriptors) < 2:
-        raise ValueError(f"training needs at least 2 scans, got {len(descriptors)}")
+    descriptors = _checked_descriptors(descriptors, layout)
     Y = one_hot(labels, len(scenario_names))
     if len(Y) != len(descriptors):
         raise ValueError(f"{len(Y)} labels for {len(descriptors)} descriptors")
@@ -123,11 +170,7 @@ def fit_model(
     info = {
         "scans": int(len(descriptors)),
         "scans_per_scenario": np.bincount(np.asarray(labels), minlength=len(scenario_names)).tolist(),
-        "solver_path": result.path,
-        "solver_iterations": int(result.iterations),
-        "solver_converged": bool(result.converged),
-        "objective": float(result.objective_history[-1]),
-        "training_seconds": round(seconds, 3),
+        **_solver_info(result, seconds),
         **(metadata or {}),
     }
     model = VBRLModel(
