@@ -150,12 +150,17 @@ def test_intensity_depends_on_material_and_incidence():
     assert on_wall[azimuth < 0.1, 3].mean() > ground[:, 3].mean()  # plaster brighter than asphalt
 
 
-def test_tilted_pose_is_rejected():
+def test_overly_tilted_or_improper_pose_is_rejected():
     scene = Scene(Boxes.empty(), Cylinders.empty(), Ellipsoids.empty())
+    lidar = LidarConfig(beams=16, columns=90)
     tilted = _pose(0, 0, 0)
-    tilted[:3, :3] = [[1, 0, 0], [0, math.cos(0.1), -math.sin(0.1)], [0, math.sin(0.1), math.cos(0.1)]]
-    with pytest.raises(ValueError, match="level"):
-        render_scan(scene, tilted, LidarConfig(beams=16, columns=90), np.random.default_rng(0))
+    tilted[:3, :3] = [[1, 0, 0], [0, math.cos(1.2), -math.sin(1.2)], [0, math.sin(1.2), math.cos(1.2)]]
+    with pytest.raises(ValueError, match="tilts the sensor by 68.8"):
+        render_scan(scene, tilted, lidar, np.random.default_rng(0))
+    mirrored = _pose(0, 0, 0)
+    mirrored[1, 1] = -1.0
+    with pytest.raises(ValueError, match="rotation"):
+        render_scan(scene, mirrored, lidar, np.random.default_rng(0))
 
 
 @pytest.mark.parametrize(

@@ -10,15 +10,38 @@ the renderer bounds the azimuth interval and the elevation interval it
 subtends as seen from the sensor (exact footprint corners for boxes, tangent
 lines for cylinders/ellipsoids, conservative in elevation) and only generates
 (ray, primitive) pairs inside that window -- a rasteriser's bounding-box test.
-Primitives whose footprint lies beyond ``max_range_m`` are culled. This
-requires the sensor to be level (yaw-only poses, as produced by
-:func:`.route.make_route`); other poses are rejected.
+Primitives whose footprint lies beyond ``max_range_m`` are culled. The windows
+are world azimuth/elevation intervals, so they hold for a level sensor only.
+
+A tilted sensor (a hand-held one, or one mounted with roll or pitch; up to
+``MAX_TILT_DEG``) is rendered through a level one: a level sensor at the same
+origin and heading, with the same beam spacing and columns but its vertical
+field of view widened by the tilt on both sides (:func:`level_cover`), so that
+it covers every elevation the tilted beams reach. Its points are rotated into
+the tilted sensor frame and kept if they lie inside the tilted sensor's own
+vertical field of view, to within half a beam spacing; each is labelled with
+the nearest of the sensor's beams. Every point is an exact hit of an exactly
+cast ray, so the geometry and the poses are exact and rendering stays as fast
+as the culling makes it (about twice the rays for a 20 degree tilt of a 40
+degree field of view).
+
+What is approximated is the beam pattern. A real tilted sensor fires along
+cones about its own z axis, at azimuths evenly spaced in its own frame. The
+level render fires along level cones, which cross the tilted field of view
+obliquely: the angular spacing of the points is the sensor's, but a beam of
+the tilted scan (its ring label) is the band of level points within half a
+spacing of that beam's cone, not one cone, its points are not evenly spaced
+in the sensor's azimuth, and the field of view's edges are cut along the
+level rings. What reads the points' geometry (voxel grids, ground fits,
+registration) sees a tilted sensor; what relies on the ring structure
+(range images, per-ring ground segmentation) sees the difference. Exactly
+level poses take the direct path, unchanged.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
@@ -30,6 +53,11 @@ from .scene import Hits, PairLists, Scene
 # (VLP-16, HDL-32E, a 64-beam spinning LiDAR, OS-128).
 DEFAULT_VERTICAL_FOV_DEG = {16: (-15.0, 15.0), 32: (-30.0, 10.0), 64: (-25.0, 15.0), 128: (-22.5, 22.5)}
 _RANGE_FALLOFF_M = 60.0  # range at which the received power has halved (before weather)
+#: Largest tilt (angle between the sensor's z axis and the world's) a pose may have.
+MAX_TILT_DEG = 60.0
+_MAX_BEAMS = 512
+_LEVEL_TILT_RAD = 1e-9  # below this a pose takes the level path
+_SINGLE_BEAM_STEP_DEG = 0.4  # elevation spacing of the level render of a tilted one-beam sensor
 
 
 @dataclass(frozen=True)
@@ -205,19 +233,91 @@ def render_scan(
     rng: np.random.Generator,
     weather: WeatherEffects | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Render one scan from ``pose`` (T_world_lidar, level).
+    """Render one scan from ``pose`` (T_world_lidar, level or tilted by at most ``MAX_TILT_DEG``).
 
     Returns ``(points, labels, rings)``: (N, 4) float32 x, y, z, intensity in
     the sensor frame (misses dropped, intensity in [0, 1]), (N,) uint8
-    :class:`~.geometry.Material` of each point, (N,) uint16 beam index.
+    :class:`~.geometry.Material` of each point, (N,) uint16 beam index. A
+    tilted pose is rendered through a widened level sensor (module docstring).
     """
     pose = np.asarray(pose, dtype=np.float64)
     if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
         raise ValueError(f"pose must be a finite 4x4 matrix, got shape {pose.shape}")
     rotation, origin = pose[:3, :3], pose[:3, 3]
-    if abs(rotation[2, 2] - 1.0) > 1e-6:
-        raise ValueError("pose must be level (rotation about z only): the renderer culls in azimuth/elevation")
+    if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-6) or np.linalg.det(rotation) < 0:
+        raise ValueError("pose rotation must be a proper rotation matrix")
+    tilt = tilt_angle(rotation)
+    if tilt > math.radians(MAX_TILT_DEG) + 1e-9:
+        raise ValueError(f"pose tilts the sensor by {math.degrees(tilt):.1f} degrees; "
+                         f"the renderer supports at most {MAX_TILT_DEG:g}")
     weather = weather or WeatherEffects()
+    if tilt <= _LEVEL_TILT_RAD:
+        xyz, intensity, labels, rows = _render_level(scene, origin, rotation, lidar, rng, weather)
+        return _assemble(xyz, intensity), labels, rows.astype(np.uint16)
+    return _render_tilted(scene, origin, rotation, tilt, lidar, rng, weather)
+
+
+def tilt_angle(rotation: np.ndarray) -> float:
+    """Angle (rad) between the sensor's z axis (column 2 of ``rotation``) and the world's."""
+    return math.atan2(math.hypot(rotation[0, 2], rotation[1, 2]), rotation[2, 2])
+
+
+def _beam_step_deg(lidar: LidarConfig) -> float:
+    low, high = lidar.vertical_fov_deg  # type: ignore[misc]
+    return (high - low) / (lidar.beams - 1) if lidar.beams > 1 else _SINGLE_BEAM_STEP_DEG
+
+
+def level_cover(lidar: LidarConfig, tilt: float) -> LidarConfig:
+    """The level sensor that covers ``lidar`` tilted by ``tilt`` rad: same beam spacing and
+    columns, its own beams among the rows, the field of view widened by whole beam steps."""
+    low, high = lidar.vertical_fov_deg  # type: ignore[misc]
+    high = high if lidar.beams > 1 else low  # one beam fires at ``low`` only
+    step = _beam_step_deg(lidar)
+    extra = math.ceil(math.degrees(tilt) / step - 1e-9)
+    below = min(extra, math.ceil((low + 90.0) / step) - 1)  # stay inside (-90, 90)
+    above = min(extra, math.ceil((90.0 - high) / step) - 1)
+    if below + above == 0:  # a field of view already reaching +-90 degrees
+        return lidar
+    beams = lidar.beams + below + above
+    if beams > _MAX_BEAMS:
+        raise ValueError(f"a {lidar.beams}-beam sensor tilted by {math.degrees(tilt):.1f} degrees needs a "
+                         f"{beams}-beam level render (at most {_MAX_BEAMS}): use fewer beams or less tilt")
+    return replace(lidar, beams=beams, vertical_fov_deg=(low - below * step, high + above * step))
+
+
+def _render_tilted(scene: Scene, origin: np.ndarray, rotation: np.ndarray, tilt: float, lidar: LidarConfig,
+                   rng: np.random.Generator, weather: WeatherEffects) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Render through the level cover, rotate into the tilted frame, crop to its field of view."""
+    yaw = math.atan2(rotation[1, 0], rotation[0, 0])
+    c, s = math.cos(yaw), math.sin(yaw)
+    level = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    xyz_level, intensity, labels, _ = _render_level(scene, origin, level, level_cover(lidar, tilt), rng, weather)
+    # p_sensor = R^T L p_level; row vectors: p_level^T (L^T R).
+    tilt_rotation = level.T @ rotation
+    xyz = (xyz_level[:, 0:1] * tilt_rotation[0] + xyz_level[:, 1:2] * tilt_rotation[1]
+           + xyz_level[:, 2:3] * tilt_rotation[2])
+    elevation = np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
+    low = lidar.vertical_fov_deg[0]  # type: ignore[index]
+    ring = np.rint((elevation - low) / _beam_step_deg(lidar)).astype(np.int64)
+    inside = (ring >= 0) & (ring < lidar.beams)
+    xyz, intensity, labels, ring = xyz[inside], intensity[inside], labels[inside], ring[inside]
+    # Ring-major, then the sensor's own azimuth: the row-major order of a level scan.
+    column = np.floor((np.arctan2(xyz[:, 1], xyz[:, 0]) + math.pi) * (lidar.columns / (2 * math.pi)))
+    order = np.argsort(ring * (lidar.columns + 1) + column.astype(np.int64), kind="stable")
+    return _assemble(xyz[order], intensity[order]), labels[order], ring[order].astype(np.uint16)
+
+
+def _assemble(xyz: np.ndarray, intensity: np.ndarray) -> np.ndarray:
+    points = np.empty((len(xyz), 4), dtype=np.float32)
+    points[:, :3] = xyz
+    points[:, 3] = intensity
+    return points
+
+
+def _render_level(scene: Scene, origin: np.ndarray, rotation: np.ndarray, lidar: LidarConfig,
+                  rng: np.random.Generator, weather: WeatherEffects
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(xyz float64 sensor frame, intensity in [0, 1], material, beam row) of a level sensor's returns."""
     yaw = math.atan2(rotation[1, 0], rotation[0, 0])
     dirs_sensor = lidar.directions()
     # Column-wise rotation: (n, 3) @ (3, 3) through BLAS is pathologically slow on some builds.
@@ -252,10 +352,7 @@ def render_scan(
     measured = ranges[keep] + rng.normal(0.0, noise_std, len(keep)) if noise_std > 0 else ranges[keep]
     in_range = (measured >= lidar.min_range_m) & (measured <= lidar.max_range_m)
     keep, measured = keep[in_range], measured[in_range]
-    points = np.empty((len(keep), 4), dtype=np.float32)
-    points[:, :3] = dirs_sensor[keep] * measured[:, None]
     value = intensity[keep]
     if lidar.intensity_noise_std > 0:
         value = value + rng.normal(0.0, lidar.intensity_noise_std, len(keep))
-    points[:, 3] = np.clip(value, 0.0, 1.0)
-    return points, material[keep], (keep // lidar.columns).astype(np.uint16)
+    return dirs_sensor[keep] * measured[:, None], np.clip(value, 0.0, 1.0), material[keep], keep // lidar.columns
