@@ -41,6 +41,9 @@ _TEMPLATES = (("A", 1, 1, "x"), ("B", 1, -1, "y"), ("C", 1, 1, "y"), ("D", -1, 1
 # Loop sizes (w, h) in blocks, cycled; clipped to the room around home.
 _SIZES = ((2, 1), (2, 1), (1, 1), (1, 2), (2, 2), (1, 1), (2, 1), (1, 2))
 _DENSE_STEP_M = 0.25
+#: Limit on the mount's roll and pitch each; both at the limit tilt the sensor by 60
+#: degrees, what :func:`.lidar.render_scan` renders at most.
+MAX_MOUNT_TILT_DEG = 45.0
 
 
 def _positive(name: str, value: float | None, allow_none: bool = False) -> None:
@@ -62,7 +65,12 @@ class RouteConfig:
     from exactly the same spots, as real sessions never do.
     ``home`` is the start intersection (default: the grid centre).
     ``sensor_height_m`` is the LiDAR origin above the ground: the poses are
-    T_world_lidar, z-up, yaw following the path.
+    T_world_lidar, z-up, yaw following the path. ``sensor_roll_deg`` and
+    ``sensor_pitch_deg`` tilt the sensor on its mount (a hand-held sensor, or
+    one mounted askew), fixed for the whole drive and included in the poses:
+    R = Rz(yaw) Ry(pitch) Rx(roll), right-handed about the sensor's x (forward)
+    and y (left) axes, so a positive roll lifts the left side and a positive
+    pitch tips the front down. Each lies in [-45, 45] degrees.
     """
 
     loops: int = 4
@@ -73,6 +81,8 @@ class RouteConfig:
     lane_offset_m: float = 1.0
     corner_smoothing_m: float = 5.0
     sensor_height_m: float = 1.8
+    sensor_roll_deg: float = 0.0
+    sensor_pitch_deg: float = 0.0
     sample_offset_m: float = 0.0
     home: tuple[int, int] | None = None
     max_scans: int | None = None
@@ -88,6 +98,11 @@ class RouteConfig:
         _positive("rate_hz", self.rate_hz, allow_none=True)
         for name in ("speed_mps", "max_lateral_accel", "corner_smoothing_m", "sensor_height_m"):
             _positive(name, getattr(self, name))
+        for name in ("sensor_roll_deg", "sensor_pitch_deg"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not -MAX_MOUNT_TILT_DEG <= value <= MAX_MOUNT_TILT_DEG:
+                raise ValueError(f"RouteConfig.{name} must lie in [-{MAX_MOUNT_TILT_DEG:g}, "
+                                 f"{MAX_MOUNT_TILT_DEG:g}] degrees, got {value!r}")
         if not isinstance(self.lane_offset_m, (int, float)) or not 0 <= self.lane_offset_m <= 5:
             raise ValueError(f"RouteConfig.lane_offset_m must lie in [0, 5], got {self.lane_offset_m!r}")
         if not isinstance(self.sample_offset_m, (int, float)) or not 0 <= self.sample_offset_m < 1e4:
@@ -179,6 +194,13 @@ def _lane_polyline(points: np.ndarray, offset: float) -> np.ndarray:
     return np.array(shifted)
 
 
+def mount_rotation(roll_deg: float, pitch_deg: float) -> np.ndarray:
+    """Ry(pitch) Rx(roll): the tilted sensor's axes in the level, heading-aligned frame."""
+    roll, pitch = math.radians(roll_deg), math.radians(pitch_deg)
+    cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+    return np.array([[cp, sp * sr, sp * cr], [0.0, cr, -sr], [-sp, cp * sr, cp * cr]])
+
+
 def make_route(town: Town, config: RouteConfig | None = None) -> Route:
     """Sample the drive of ``config`` through ``town`` (deterministic, no randomness)."""
     cfg = config or RouteConfig()
@@ -220,6 +242,8 @@ def make_route(town: Town, config: RouteConfig | None = None) -> Route:
     poses[:, 1, 0] = np.sin(heading)
     poses[:, 0, 1] = -np.sin(heading)
     poses[:, 2, 2] = poses[:, 3, 3] = 1.0
+    if cfg.sensor_roll_deg or cfg.sensor_pitch_deg:  # untilted poses stay exactly yaw-only
+        poses[:, :3, :3] = poses[:, :3, :3] @ mount_rotation(cfg.sensor_roll_deg, cfg.sensor_pitch_deg)
     poses[:, 0, 3], poses[:, 1, 3], poses[:, 2, 3] = x, y, cfg.sensor_height_m
     loop_of_sample = dense_loop[np.clip(np.searchsorted(s, s_samples), 0, len(s) - 1)]
     return Route(poses=poses, stamps=cfg.start_stamp + np.interp(s_samples, s, time), arc_length=s_samples,

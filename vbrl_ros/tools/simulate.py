@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from dataclasses import asdict
 from pathlib import Path
 
-from vbrl_ros.simulator.lidar import LidarConfig
-from vbrl_ros.simulator.route import RouteConfig, make_route
+from vbrl_ros.simulator.lidar import LidarConfig, level_cover, tilt_angle
+from vbrl_ros.simulator.route import RouteConfig, make_route, mount_rotation
 from vbrl_ros.simulator.run import SimulatedRun, simulate_run
 from vbrl_ros.simulator.scenarios import FOLIAGE_DENSITY, SCENARIO_PRESETS, WEATHER, Scenario
 from vbrl_ros.simulator.town import TownConfig, generate_town
@@ -78,6 +79,16 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     lidar.add_argument("--max-range", type=float, default=100.0, help="maximum range (m)")
     lidar.add_argument("--range-noise", type=float, default=0.02, help="range noise std (m), before weather")
 
+    mount = parser.add_argument_group("sensor mount (the poses written include it)")
+    mount.add_argument("--sensor-height", type=float, default=1.8, metavar="M",
+                       help="height of the LiDAR origin above the ground (m): ~0.5 on a small robot, "
+                            "1.8 on a car roof, 2.4 on a mast")
+    mount.add_argument("--tilt", nargs=2, type=float, default=[0.0, 0.0], metavar=("ROLL", "PITCH"),
+                       help="fixed tilt of the sensor on its mount in degrees, each in [-45, 45]: positive roll "
+                            "lifts the left side, positive pitch tips the front down (e.g. 0 20 for a "
+                            "hand-held sensor pointed at the ground); a tilted sensor is rendered as a level "
+                            "one with a widened field of view, cropped to its own")
+
     ros = parser.add_argument_group("bag topics (ROS formats)")
     ros.add_argument("--cloud-topic", default="/points", help="PointCloud2 topic")
     ros.add_argument("--odom-topic", default="/odom", help="Odometry topic (ground-truth pose)")
@@ -133,10 +144,15 @@ def run(args: argparse.Namespace) -> int:
     town_config = TownConfig(blocks_x=args.blocks[0], blocks_y=args.blocks[1], block_size_m=tuple(args.block_size))
     spacing = args.spacing if args.spacing is not None or args.rate is not None else 1.0
     route_config = RouteConfig(loops=args.loops, spacing_m=spacing, rate_hz=args.rate, speed_mps=args.speed,
-                               sample_offset_m=args.sample_offset, max_scans=args.scans)
+                               sample_offset_m=args.sample_offset, max_scans=args.scans,
+                               sensor_height_m=args.sensor_height, sensor_roll_deg=args.tilt[0],
+                               sensor_pitch_deg=args.tilt[1])
     lidar = LidarConfig(beams=args.beams, columns=args.columns,
                         vertical_fov_deg=tuple(args.vertical_fov) if args.vertical_fov else None,
                         max_range_m=args.max_range, range_noise_std_m=args.range_noise)
+    tilt = tilt_angle(mount_rotation(route_config.sensor_roll_deg, route_config.sensor_pitch_deg))
+    if tilt > 0:  # a tilt too large for the beam count fails here, not after the first outputs
+        level_cover(lidar, tilt)
     jobs = [(scenario, seed, scenario.name if len(args.seed) == 1 else f"{scenario.name}_seed{seed}")
             for scenario in scenarios for seed in args.seed]
     paths = [_output_path(args.output, name, args.format) for _, _, name in jobs]
@@ -147,7 +163,8 @@ def run(args: argparse.Namespace) -> int:
     town = generate_town(town_config, args.town_seed)
     route = make_route(town, route_config)
     print(f"town {args.blocks[0]}x{args.blocks[1]} blocks (seed {args.town_seed}), route {route.length_m:.0f} m "
-          f"in {len(route.loop_names)} loops, {len(route)} scans of {lidar.beams}x{lidar.columns} rays")
+          f"in {len(route.loop_names)} loops, {len(route)} scans of {lidar.beams}x{lidar.columns} rays, "
+          f"sensor {route_config.sensor_height_m:g} m up, tilted {math.degrees(tilt):.1f} deg")
     args.output.mkdir(parents=True, exist_ok=True)
     for (scenario, seed, name), path in zip(jobs, paths):
         sim = simulate_run(town, route, lidar, scenario, seed)
