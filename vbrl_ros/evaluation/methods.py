@@ -2,8 +2,9 @@
 
 Every source is described ONCE (:func:`describe_source`): the raw VBRL
 descriptor and the Scan Context descriptor of each keyframe, computed together
-in worker processes. All VBRL variants (full model, ablations) share the raw
-descriptors; only their standardisation and row weights differ.
+in worker processes; with translation search also the VBRL descriptors from the
+other viewpoints, as the node describes its queries. All VBRL variants (full model,
+ablations) share the raw descriptors; only their standardisation and row weights differ.
 
 A method turns (query descriptors, database descriptors) into a
 ``distances_fn(query_index, candidate_indices) -> distances`` for
@@ -28,6 +29,7 @@ from vbrl_ros.evaluation.retrieval import DistancesFn
 from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.parameters import IndexParameters
+from vbrl_ros.index.translation_search import search_views, view_offsets
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.model.scoring import WeightedL1Scorer
 from vbrl_ros.evaluation.baselines.scan_context import (
@@ -54,23 +56,27 @@ class SourceDescriptors:
     scan_context: np.ndarray  # (n, rings, sectors) float32
     keyframe_index: np.ndarray  # (n,) scan index of each keyframe in its source
     positions: np.ndarray | None  # (n, 3) ground truth only; None without poses
+    views: np.ndarray | None = None  # (n, V, d) raw descriptors from view_offsets; [:, 0] = vbrl
+    view_offsets: np.ndarray | None = None  # (V, 2) metres, the first (0, 0)
 
     def __len__(self) -> int:
         return len(self.keyframe_index)
 
 
-_worker: tuple[Featurizer, ScanContextConfig] | None = None
+_worker: tuple[Featurizer, ScanContextConfig, np.ndarray] | None = None
 
 
-def _init_worker(config_dict: dict, sc_dict: dict) -> None:
+def _init_worker(config_dict: dict, sc_dict: dict, offsets: np.ndarray) -> None:
     global _worker
-    _worker = (Featurizer(VBRLConfig.from_dict(config_dict)), ScanContextConfig(**sc_dict))
+    _worker = (Featurizer(VBRLConfig.from_dict(config_dict)), ScanContextConfig(**sc_dict), offsets)
 
 
 def _describe(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(views (V, d), Scan Context): the VBRL views as the node computes them."""
     assert _worker is not None
-    featurizer, sc_config = _worker
-    return featurizer.describe(points), scan_context(points, sc_config)
+    featurizer, sc_config, offsets = _worker
+    views = featurizer.describe_views(featurizer.frame(points).apply(points), offsets)
+    return views, scan_context(points, sc_config)
 
 
 def describe_source(
@@ -84,9 +90,13 @@ def describe_source(
     every: int | None = None,
     workers: int | None = None,
     progress: bool = True,
+    translation_search: float = 0.0,
 ) -> SourceDescriptors:
-    """Read the keyframes of ``path`` once and compute both descriptors of each."""
+    """Read the keyframes of ``path`` once and compute both descriptors of each (and the VBRL
+    views of :func:`~vbrl_ros.index.translation_search.view_offsets` for ``translation_search`` > 0)."""
     workers = default_workers() if workers is None else workers
+    offsets = view_offsets(translation_search)
+    init = (config.to_dict(), asdict(sc_config), offsets)
     with open_source(path, topic=topic, poses=poses, progress=progress) as source:
         indices = select_keyframes(source, distance=keyframe_distance, every=every)
         scans = source_points(source, indices)
@@ -95,25 +105,27 @@ def describe_source(
         vbrl, sc = [], []
         try:
             if workers <= 1:
-                _init_worker(config.to_dict(), asdict(sc_config))
+                _init_worker(*init)
                 rows = map(_describe, scans)
                 for a, b in rows:
                     vbrl.append(a), sc.append(b), bar.update()
             else:
-                with ProcessPoolExecutor(workers, initializer=_init_worker,
-                                         initargs=(config.to_dict(), asdict(sc_config))) as pool:
+                with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init) as pool:
                     for a, b in bounded_map(pool, _describe, scans, 4 * workers):
                         vbrl.append(a), sc.append(b), bar.update()
         finally:
             bar.close()
         positions = None if source.poses is None else source.poses[indices, :3, 3].copy()
         d = Featurizer(config).dimension
+        views = np.stack(vbrl) if vbrl else np.zeros((0, len(offsets), d), np.float32)
         return SourceDescriptors(
             name=source.name,
-            vbrl=np.stack(vbrl) if vbrl else np.zeros((0, d), np.float32),
+            vbrl=views[:, 0],
             scan_context=np.stack(sc) if sc else np.zeros((0, *sc_config.shape), np.float32),
             keyframe_index=np.asarray(indices, dtype=np.int64),
             positions=positions,
+            views=views if len(offsets) > 1 else None,
+            view_offsets=offsets,
         )
 
 
@@ -188,6 +200,8 @@ class VBRLMethod:
         T = Q if database is queries else self.compact(database.vbrl)
         index = self.new_index()
         self.yaws = {}
+        self.offsets: dict[int, np.ndarray] = {}  # query -> viewpoints of its top-K
+        raw_views, offsets = queries.views, queries.view_offsets
 
         def fn(i: int, candidates: np.ndarray) -> np.ndarray:
             # The drivers ask for database prefixes 0..limit-1 in increasing
@@ -196,8 +210,13 @@ class VBRLMethod:
             if len(index) < limit:
                 index.add_batch(T[len(index): limit])
             allowed = None if len(index) == limit else np.arange(len(index)) < limit
-            found = index.search_with_yaw(Q[i], TOP_K_RETRIEVED, allowed, exact=self.exact)
-            self.yaws[i] = found.yaws
+            if raw_views is None:
+                found = search_views(index, Q[i][None], np.zeros((1, 2)), TOP_K_RETRIEVED, allowed,
+                                     exact=self.exact)
+            else:  # as the node: the query from every viewpoint
+                found = search_views(index, self.compact(raw_views[i]), offsets, TOP_K_RETRIEVED,
+                                     allowed, exact=self.exact)
+            self.yaws[i], self.offsets[i] = found.yaws, found.offsets
             out = np.full(len(candidates), np.inf)  # not retrieved: never a match
             out[found.indices] = found.distances
             return out

@@ -56,7 +56,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("query", type=Path, metavar="QUERY_SOURCE")
     parser.add_argument("--against", type=Path, metavar="DATABASE_SOURCE",
                         help="P2: database session (queries come from QUERY_SOURCE)")
-    parser.add_argument("--model", type=Path, required=True, metavar="MODEL.npz")
+    parser.add_argument("--model", type=Path, default=None, metavar="MODEL.npz",
+                        help="the model to evaluate (default: the built-in model the node uses)")
+    parser.add_argument("--translation-search", type=float, default=None, metavar="M",
+                        help="VBRL: also describe each query from viewpoints M metres around it, as "
+                             "the node does (default: the model's own setting; 0: off)")
     parser.add_argument("--align", type=Path, metavar="T.txt",
                         help="P2: 4x4 transform, query world frame -> database world frame "
                              "(ground truth only)")
@@ -201,6 +205,18 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise ValueError("--prune must be in [0, 1)")
     if args.align is not None and args.against is None:
         raise ValueError("--align only applies to P2 (--against)")
+    if args.translation_search is not None and not 0 <= args.translation_search <= 10:
+        raise ValueError("--translation-search must be a step in [0, 10] metres")
+    for name, path in (("QUERY_SOURCE", args.query), ("--against", args.against), ("--model", args.model)):
+        if path is not None and not Path(path).exists():  # before minutes of describing
+            raise ValueError(f"{name} {path} does not exist")
+
+
+def in_sample_warnings(model: VBRLModel, sources: list[Path]) -> list[str]:
+    """A warning per evaluated source the model was trained on (its metadata lists them)."""
+    trained = {Path(p).resolve() for p in model.metadata.get("sources", [])}
+    return [f"the model was trained on {source}: these results are in-sample, not a test"
+            for source in sources if source is not None and Path(source).resolve() in trained]
 
 
 def load(args: argparse.Namespace) -> Evaluation:
@@ -208,12 +224,18 @@ def load(args: argparse.Namespace) -> Evaluation:
     from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
     from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod, describe_source
 
+    from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
+
     alignment = load_alignment(args.align) if args.align is not None else None
-    models, notes = load_models(args.model, args.ablations)
-    config = models[FULL_NAME].config
+    models, notes = load_models(args.model or DEFAULT_MODEL_PATH, args.ablations)
+    full = models[FULL_NAME]
+    config = full.config
+    notes += in_sample_warnings(full, [args.query, args.against])
     sc_config = ScanContextConfig(max_range=args.sc_max_range, lidar_height=args.sc_lidar_height)
+    step = full.translation_search() if args.translation_search is None else args.translation_search
     options = dict(topic=args.topic, poses=args.poses, keyframe_distance=args.keyframe_distance,
-                   every=args.every, workers=args.workers, progress=not args.quiet)
+                   every=args.every, workers=args.workers, progress=not args.quiet,
+                   translation_search=step)
     queries = describe_source(args.query, config, sc_config, **options)
     database = queries if args.against is None else describe_source(args.against, config, sc_config,
                                                                      **options)

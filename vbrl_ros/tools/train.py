@@ -20,14 +20,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from vbrl_ros.config import GRID_KINDS, VBRLConfig, VoxelGridConfig
+from vbrl_ros.config import GRID_KINDS, FeatureConfig, VBRLConfig, VoxelGridConfig
 from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.tools.options import add_keyframe_arguments, add_source_arguments, float_list
 from vbrl_ros.training import cv as cv_module
 from vbrl_ros.training import streaming
 from vbrl_ros.training.ablations import ABLATIONS, ablation_lambdas, ablation_path, sibling_path
-from vbrl_ros.training.fit import TrainingResult, fit_model
+from vbrl_ros.training.fit import TrainingResult, fit_model, fit_pairs
 from vbrl_ros.training.report import importance_report
 from vbrl_ros.training.targets import TARGETS, place_labels
 from vbrl_ros.training.threshold import recommend_threshold
@@ -46,17 +46,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="MODEL.npz")
     parser.add_argument("--labels", help="comma-separated scenario label per SOURCE")
     parser.add_argument("--targets", choices=TARGETS, default="scenarios",
-                        help="what Y labels: the scenario of each source (docs/design.md, default) or "
-                             "places, cells of --place-size metres (needs poses; better on the "
-                             "simulator's long-term protocol, see README)")
+                        help="what Y labels: the scenario of each source (the paper's, default); "
+                             "places, cells of --place-size metres (needs poses); or pairs: rows are "
+                             "same-place / different-place scan pairs (needs poses)")
     parser.add_argument("--place-size", type=float, default=6.0, metavar="M",
                         help="place cell size for --targets places (6 m)")
+    parser.add_argument("--frames", choices=("shared", "per-source"), default="shared",
+                        help="--targets places: the sources' poses share one world frame (sessions of "
+                             "one map; default) or each source has its own (different recordings)")
     parser.add_argument("--lambda1", type=float, default=10.0, help="voxel group norm weight (10)")
     parser.add_argument("--lambda2", type=float, default=0.1,
                         help="modality group + row norm weight (0.1)")
     add_keyframe_arguments(parser)
     add_source_arguments(parser)
     grid = parser.add_argument_group("voxel grid (recorded in the model file)")
+    grid.add_argument("--descriptor", choices=DESCRIPTORS, default="paper",
+                      help="paper: the paper's five modalities on --grid (default); recognition: "
+                           "the built-in model's descriptor for any sensor — scans levelled on their "
+                           "ground, the height modality on a 20 x 30 polar grid, normalised, with "
+                           "translation search (--rings/--sectors/--max-range still apply)")
     grid.add_argument("--grid", choices=GRID_KINDS, default="cartesian",
                       help="cartesian: the paper's grid, fixed to the sensor axes (default); "
                            "polar: rings x sectors, robust to the heading of a revisit")
@@ -107,10 +115,26 @@ def _summary(result: TrainingResult) -> str:
             f"{result.seconds:.1f} s")
 
 
+DESCRIPTORS = ("paper", "recognition")
+#: The recognition descriptor (docs/design.md §6): what the built-in model uses.
+RECOGNITION_GRID = dict(kind="polar", rings=20, sectors=30, max_range=40.0, z_edges=(0.0, 20.0),
+                        frame="ground")
+RECOGNITION_FEATURES = FeatureConfig(modalities=("height",), min_points=1, normalise=True)
+RECOGNITION_TRANSLATION_SEARCH_M = 1.5
+
+
+def recognition_config(**polar: float) -> VBRLConfig:
+    """The recognition descriptor, with ``rings``/``sectors``/``max_range`` overridden."""
+    return VBRLConfig(grid=VoxelGridConfig(**{**RECOGNITION_GRID, **polar}), features=RECOGNITION_FEATURES)
+
+
 def grid_config(args: argparse.Namespace) -> VBRLConfig:
-    """The configuration --grid/--rings/--sectors/--max-range ask for (paper defaults otherwise)."""
+    """The configuration --descriptor/--grid/--rings/--sectors/--max-range ask for (paper
+    defaults otherwise)."""
     polar = {name: value for name, value in (("rings", args.rings), ("sectors", args.sectors),
                                              ("max_range", args.max_range)) if value is not None}
+    if getattr(args, "descriptor", "paper") == "recognition":
+        return recognition_config(**polar)
     if args.grid != "polar":
         if polar:
             raise ValueError(f"--{'/--'.join(k.replace('_', '-') for k in polar)} only apply to "
@@ -156,8 +180,8 @@ def load(args: argparse.Namespace, config: VBRLConfig, names: list[str]) -> Load
     d = Featurizer(config).layout.dimension
     stream, counted = _should_stream(args, d)
     metadata = {"sources": [str(p) for p in args.sources], "labels": names}
-    if args.targets == "places" and (stream or args.cv):
-        raise ValueError("--targets places works with in-memory training without --cv for now")
+    if args.targets != "scenarios" and (stream or args.cv):
+        raise ValueError(f"--targets {args.targets} works with in-memory training without --cv for now")
     if stream:
         if args.cv:
             raise ValueError("--cv needs the training descriptors in memory; run it on a subset "
@@ -198,11 +222,17 @@ def load_in_memory(args: argparse.Namespace, config: VBRLConfig, names: list[str
         lambdas = cross_validated_lambdas(args, data, config, metadata)
     targets, target_names = data.labels, data.scenario_names
     if args.targets == "places":
-        targets, target_names = place_labels(data.positions, args.place_size)
+        frames = data.source_of_row if args.frames == "per-source" else None
+        targets, target_names = place_labels(data.positions, args.place_size, frames)
         metadata["targets"] = f"places ({len(target_names)} cells of {args.place_size:g} m)"
         print(f"Y labels {len(target_names)} places ({args.place_size:g} m cells)")
+    if args.descriptor == "recognition":
+        metadata["translation_search"] = RECOGNITION_TRANSLATION_SEARCH_M
 
     def fit(l1: float, l2: float, meta: dict) -> TrainingResult:
+        if args.targets == "pairs":
+            return fit_pairs(data.descriptors, data.positions, data.source_of_row, config,
+                             lambda1=l1, lambda2=l2, metadata=meta)
         return fit_model(data.descriptors, targets, target_names, config,
                          lambda1=l1, lambda2=l2, metadata=meta)
 

@@ -19,7 +19,6 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from vbrl_ros.features.featurizer import MODALITIES
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.training.ablations import sibling_path
 from vbrl_ros.training.report import layer_names, layer_shares
@@ -42,16 +41,17 @@ def _save(fig: Figure, path: str | Path, dpi: int) -> Path:
 def plot_modalities(model: VBRLModel, path: str | Path, dpi: int = 120) -> Path:
     """Modality shares (paper Fig. 4a) as a pie and, for small shares, a bar chart."""
     shares = 100.0 * model.w_modality
+    names = model.config.features.modalities
     fig = _figure(10.0, 4.0)
     pie, bar = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
     fig.subplots_adjust(wspace=0.5)  # room for the pie's outer labels
     colors = [f"C{k}" for k in range(len(shares))]
     shown = shares > 0  # a pie cannot draw zero wedges; the bar chart still lists them
-    pie.pie(shares[shown], labels=[m for m, s in zip(MODALITIES, shown) if s],
+    pie.pie(shares[shown], labels=[m for m, s in zip(names, shown) if s],
             colors=[c for c, s in zip(colors, shown) if s], autopct="%1.1f%%", startangle=90)
     pie.set_title("modality shares")
     bar.bar(range(len(shares)), shares, color=colors)
-    bar.set_xticks(range(len(shares)), MODALITIES, rotation=30, ha="right")
+    bar.set_xticks(range(len(shares)), names, rotation=30, ha="right")
     bar.set_ylabel("share of ‖W‖ (%)")
     bar.grid(True, axis="y", alpha=0.3)
     fig.suptitle(f"λ1 = {model.lambda1:g}, λ2 = {model.lambda2:g}")

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from vbrl_ros.features.featurizer import MODALITIES
 from vbrl_ros.grids.cartesian import CartesianVoxelGrid
 from vbrl_ros.model.model_file import VBRLModel
 
@@ -32,7 +31,7 @@ def layer_shares(model: VBRLModel) -> np.ndarray:
 def importance_report(model: VBRLModel, top_voxels: int = 5) -> str:
     """The paper's Fig. 4 figures as a plain-text table."""
     lines = ["modality shares (paper Fig. 4a):"]
-    lines += [f"  {name:<11s} {100 * share:6.2f} %" for name, share in zip(MODALITIES, model.w_modality)]
+    lines += [f"  {name:<11s} {100 * share:6.2f} %" for name, share in zip(model.config.features.modalities, model.w_modality)]
     lines.append("layer shares (bottom/middle/top):")
     names = layer_names(model.config.grid.n_layers)
     edges = model.config.grid.z_edges
