@@ -41,8 +41,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out-dir", type=Path, default=Path("runs/demo"),
                         help="where bags, model, database and results go (default runs/demo)")
     parser.add_argument("--rate", type=float, default=2.0, help="replay speed-up (default 2)")
-    parser.add_argument("--rebuild-default-model", action="store_true",
-                        help=f"rebuild the node's built-in model ({DEFAULT_MODEL_PATH.name}) and exit")
+    parser.add_argument("--rebuild-default-model", nargs="*", type=Path, metavar="RECORDING",
+                        help=f"rebuild the node's built-in model ({DEFAULT_MODEL_PATH.name}) from the "
+                             "simulated towns and these recordings, and exit")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
 
@@ -71,9 +72,12 @@ def run(args: argparse.Namespace) -> int:
     from vbrl_ros.ros.testing import isolated_ros_env, ros_context
 
     progress = not args.quiet
-    if args.rebuild_default_model:
+    if args.rebuild_default_model is not None:
         start = time.perf_counter()
-        result = build_default_model(progress=progress)
+        missing = [str(p) for p in args.rebuild_default_model if not p.exists()]
+        if missing:
+            raise ValueError(f"recording(s) not found: {', '.join(missing)}")
+        result = build_default_model(recordings=tuple(args.rebuild_default_model), progress=progress)
         print(importance_report(result.model))
         print(f"default model written to {DEFAULT_MODEL_PATH} in {time.perf_counter() - start:.0f} s "
               f"(distance threshold {result.model.metadata['distance_threshold']:.4f})")

@@ -20,7 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from vbrl_ros.config import GRID_KINDS, FeatureConfig, VBRLConfig, VoxelGridConfig
+from vbrl_ros.config import GRID_KINDS, VBRLConfig, VoxelGridConfig
 from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.tools.options import add_keyframe_arguments, add_source_arguments, float_list
@@ -28,6 +28,7 @@ from vbrl_ros.training import cv as cv_module
 from vbrl_ros.training import streaming
 from vbrl_ros.training.ablations import ABLATIONS, ablation_lambdas, ablation_path, sibling_path
 from vbrl_ros.training.fit import TrainingResult, fit_model, fit_pairs
+from vbrl_ros.training.presets import DESCRIPTORS, RECOGNITION_TRANSLATION_SEARCH_M, recognition_config
 from vbrl_ros.training.report import importance_report
 from vbrl_ros.training.targets import TARGETS, place_labels
 from vbrl_ros.training.threshold import recommend_threshold
@@ -113,19 +114,6 @@ def _should_stream(args: argparse.Namespace, d: int) -> tuple[bool, int | None]:
 def _summary(result: TrainingResult) -> str:
     return (f"solver {result.solver.path}, {result.solver.iterations} iterations, "
             f"{result.seconds:.1f} s")
-
-
-DESCRIPTORS = ("paper", "recognition")
-#: The recognition descriptor (docs/design.md §6): what the built-in model uses.
-RECOGNITION_GRID = dict(kind="polar", rings=20, sectors=30, max_range=40.0, z_edges=(0.0, 20.0),
-                        frame="ground")
-RECOGNITION_FEATURES = FeatureConfig(modalities=("height",), min_points=1, normalise=True)
-RECOGNITION_TRANSLATION_SEARCH_M = 1.5
-
-
-def recognition_config(**polar: float) -> VBRLConfig:
-    """The recognition descriptor, with ``rings``/``sectors``/``max_range`` overridden."""
-    return VBRLConfig(grid=VoxelGridConfig(**{**RECOGNITION_GRID, **polar}), features=RECOGNITION_FEATURES)
 
 
 def grid_config(args: argparse.Namespace) -> VBRLConfig:

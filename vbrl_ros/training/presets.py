@@ -1,0 +1,22 @@
+"""Named descriptors ``vbrl train --descriptor`` offers: the paper's and the recognition one.
+
+The recognition descriptor is what the built-in model uses (docs/design.md §6): scans
+levelled on their own ground, the height modality on a 20 ring x 30 sector polar grid
+(2 m x 12 degrees, 40 m), each descriptor normalised to unit L1, and queries also
+described from viewpoints 1.5 m around the sensor (translation search).
+"""
+
+from __future__ import annotations
+
+from vbrl_ros.config import FeatureConfig, VBRLConfig, VoxelGridConfig
+
+DESCRIPTORS = ("paper", "recognition")
+RECOGNITION_GRID = dict(kind="polar", rings=20, sectors=30, max_range=40.0, z_edges=(0.0, 20.0),
+                        frame="ground")
+RECOGNITION_FEATURES = FeatureConfig(modalities=("height",), min_points=1, normalise=True)
+RECOGNITION_TRANSLATION_SEARCH_M = 1.5
+
+
+def recognition_config(**polar: float) -> VBRLConfig:
+    """The recognition descriptor, with ``rings``/``sectors``/``max_range`` overridden."""
+    return VBRLConfig(grid=VoxelGridConfig(**{**RECOGNITION_GRID, **polar}), features=RECOGNITION_FEATURES)
