@@ -10,7 +10,7 @@ import pytest
 from vbrl_ros.bench import descriptors as bd
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
 from vbrl_ros.features.featurizer import Featurizer
-from vbrl_ros.model.builtin import load_default_model
+from vbrl_ros.model.builtin import load_paper_model
 from vbrl_ros.model.model_file import VBRLModel
 
 POLAR = VBRLConfig(grid=VoxelGridConfig(kind="polar", rings=3, sectors=6, max_range=20.0))
@@ -50,4 +50,4 @@ def test_polar_set_uses_the_given_models_grid_standardisation_and_weights(scans)
 
 def test_polar_set_refuses_a_cartesian_model(scans):
     with pytest.raises(ValueError, match="needs a polar model"):
-        bd.polar_set(scans[:2], model=load_default_model())
+        bd.polar_set(scans[:2], model=load_paper_model())

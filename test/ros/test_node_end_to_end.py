@@ -60,7 +60,8 @@ def test_loop_closures_within_and_across_sessions(bags, tmp_path):
     # keyframe or two can precede the first odometry message: no pose, no sphere)
     nodes, edges = first.markers.markers
     assert int(s["database_size"]) - 2 <= len(nodes.points) <= int(s["database_size"])
-    assert 2 * (len(first.closures) - 2) <= len(edges.points) <= 2 * len(first.closures)
+    # markers go out with diagnostics (1 s): the last second's closures may not be in them yet
+    assert 2 * (len(first.closures) - 6) <= len(edges.points) <= 2 * len(first.closures)
     precision, recall = precision_recall(
         first.closures, summer.positions, revisit_stamps(summer.positions, summer.positions, 30.0))
     print(f"session 0: {len(first.closures)} closures, precision {precision:.2f}, recall {recall:.2f}")

@@ -81,9 +81,9 @@ def test_bench_prints_a_table_and_writes_json(tmp_path, capsys):
 
 
 def test_bench_polar_model_must_be_polar(capsys):
-    from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
+    from vbrl_ros.model.builtin import PAPER_MODEL_PATH
 
-    assert main(["bench", "--sizes", "", "--polar-model", str(DEFAULT_MODEL_PATH)]) == 2
+    assert main(["bench", "--sizes", "", "--polar-model", str(PAPER_MODEL_PATH)]) == 2
     assert "needs a polar model" in capsys.readouterr().err
 
 

@@ -4,13 +4,13 @@ Real geometry, not iid noise: a small simulated town driven twice (summer,
 then winter from slightly offset spots), described by the package's own
 featurizers and standardised.
 
-- **Cartesian**: the default model (featurizer, standardisation, learned
+- **Cartesian**: the shipped paper-configuration model (featurizer, standardisation, learned
   Eq. 4 weights; ``prune`` as in :meth:`VBRLModel.scorer`).
-- **Polar** (S sectors, the default model's layers and range): the polar
+- **Polar** (S sectors, the paper model's layers and range): the polar
   featurizer; standardisation statistics are pooled over the drive and tied
   across sectors. No trained polar model ships yet (``vbrl bench
   --polar-model`` takes one, grid and all), so the stand-in's tied weights are
-  the default model's modality importances times its voxel importances
+  the paper model's modality importances times its voxel importances
   averaged over each (layer, ring) annulus, with the least important third of
   the annuli switched off as the sparsity norms would. The winter
   drive's scans are rotated by seeded random yaws before they are described,
@@ -74,10 +74,10 @@ def simulated_scans(blocks: int = 1, loops: int = 1, beams: int = 32, columns: i
 
 
 def cartesian_set(scans: list[tuple[np.ndarray, np.ndarray, int]], prune: float = 0.0) -> DescriptorSet:
-    """The default model's compact descriptors of ``scans``."""
-    from vbrl_ros.model.builtin import load_default_model
+    """The paper model's compact descriptors of ``scans``."""
+    from vbrl_ros.model.builtin import load_paper_model
 
-    model = load_default_model()
+    model = load_paper_model()
     scorer, featurizer = model.scorer(prune), model.featurizer()
     rows = [scorer.compact(model.standardize(featurizer.describe(p))) for p, _, _ in scans]
     return DescriptorSet("cartesian", np.asarray(rows, np.float32), scorer,
@@ -96,7 +96,7 @@ def polar_set(scans: list[tuple[np.ndarray, np.ndarray, int]], sectors: int = 24
     """
     from vbrl_ros.config import VBRLConfig, VoxelGridConfig
     from vbrl_ros.features.featurizer import Featurizer
-    from vbrl_ros.model.builtin import load_default_model
+    from vbrl_ros.model.builtin import load_paper_model
 
     if model is not None:
         require_polar(model)
@@ -105,7 +105,7 @@ def polar_set(scans: list[tuple[np.ndarray, np.ndarray, int]], sectors: int = 24
         x = model.standardize(np.asarray(raw, np.float64))
         return DescriptorSet("polar", scorer.compact(x).astype(np.float32), scorer,
                              np.array([s for _, _, s in scans]), poses)
-    model = load_default_model()
+    model = load_paper_model()
     grid = model.config.grid
     polar = VoxelGridConfig(kind="polar", sectors=sectors, z_edges=grid.z_edges,
                             max_range=grid.extent_xy)

@@ -137,6 +137,15 @@ def fit_ground(low: np.ndarray, max_tilt_deg: float = MAX_TILT_DEG) -> tuple[np.
     return normal, float(-normal @ centre)
 
 
+def gravity_rotation(world_rotation: np.ndarray) -> np.ndarray:
+    """Roll and pitch of a sensor's orientation in a gravity-aligned world (odometry's), its
+    yaw removed: the ``gravity_rotation`` that :func:`ground_frame` levels by."""
+    R = np.asarray(world_rotation, dtype=np.float64)[:3, :3]
+    yaw = math.atan2(R[1, 0], R[0, 0])
+    c, s = math.cos(-yaw), math.sin(-yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R
+
+
 def ground_frame(points: np.ndarray, gravity_rotation: np.ndarray | None = None) -> GroundFrame:
     """The levelled, ground-referenced frame of one scan given in the sensor frame.
 

@@ -34,6 +34,7 @@ from vbrl_ros.detection.database import KeyframeDatabase
 from vbrl_ros.detection.database_file import DatabaseFileError
 from vbrl_ros.detection.detector import LoopClosureDetector
 from vbrl_ros.detection.settings import SettingsError
+from vbrl_ros.grids.ground_frame import gravity_rotation
 from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
 from vbrl_ros.model.builtin import load_default_model
@@ -189,7 +190,9 @@ class VbrlNode(Node):
 
     def _process(self, points: np.ndarray, stamp: float, pose: np.ndarray | None, arrived: float) -> None:
         with self._db_lock:
-            result = self.detector.process_keyframe(points, stamp, pose)
+            gravity = (gravity_rotation(pose) if self.settings.level_from_odometry and pose is not None
+                       else None)
+            result = self.detector.process_keyframe(points, stamp, pose, gravity)
         self.stats.keyframe(1e3 * (time.monotonic() - arrived), result)
         for closure in result.closures:
             self._edges.append((closure.query_id, closure.match_id))

@@ -29,6 +29,9 @@ class NodeSettings:
     session_id: int = -1  # -1: one more than the largest session in the database
     keyframe_distance: float = 1.0  # metres of travel between keyframes (with odometry)
     keyframe_interval: float = 1.0  # seconds between keyframes (without odometry)
+    # level scans by odometry's roll and pitch (its frame must be the LiDAR's) instead of
+    # their own ground; the ground still sets the height
+    level_from_odometry: bool = False
     detector: DetectorSettings = field(default_factory=DetectorSettings)
     save_every: int = 50  # keyframes between database saves; 0: only on shutdown/service
     # Learned sparsity: descriptor rows weighing < weight_prune x the largest row weight
