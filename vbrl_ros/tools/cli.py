@@ -17,6 +17,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "vbrl_ros.tools.demo",
     "vbrl_ros.tools.train",
     "vbrl_ros.tools.evaluate",
+    "vbrl_ros.tools.leave_one_out",
     "vbrl_ros.tools.simulate",
     "vbrl_ros.tools.replay",
     "vbrl_ros.tools.bench",

@@ -106,42 +106,56 @@ def simulated_recognition_data(towns: tuple[SimulatedTown, ...], config: VBRLCon
     return out
 
 
-def build_default_model(
-    out: Path = DEFAULT_MODEL_PATH, recordings: tuple[Path, ...] = (),
-    towns: tuple[SimulatedTown, ...] = BUILTIN_TOWNS, progress: bool = True,
-) -> TrainingResult:
-    """The built-in model: the recognition descriptor, Eq. 3 on place targets, trained on the
-    simulated ``towns`` and the real ``recordings`` (any source ``vbrl train`` reads), each in
-    its own frame; writes ``out``."""
-    from vbrl_ros.training.targets import place_labels
-    from vbrl_ros.training.threshold import recommend_threshold
+TrainingPart = tuple[str, np.ndarray, np.ndarray]  # (name, raw descriptors, positions)
+
+
+def recording_parts(recordings: tuple[Path, ...], config: VBRLConfig,
+                    progress: bool = True) -> list[TrainingPart]:
+    """Every scan of each recording (any source ``vbrl train`` reads), described."""
     from vbrl_ros.training.training_data import load_training_data
 
-    config = recognition_config()
-    parts = simulated_recognition_data(towns, config, progress)
-    if recordings:
-        data = load_training_data(list(recordings), config, labels=None, topic=None, poses="auto",
-                                  keyframe_distance=None, every=None, workers=None, progress=progress)
-        for k, path in enumerate(recordings):
-            rows = data.source_of_row == k
-            parts.append((Path(path).name, data.descriptors[rows], data.positions[rows]))
+    if not recordings:
+        return []
+    data = load_training_data(list(recordings), config, labels=None, topic=None, poses="auto",
+                              keyframe_distance=None, every=None, workers=None, progress=progress)
+    return [(Path(path).name, data.descriptors[data.source_of_row == k],
+             data.positions[data.source_of_row == k]) for k, path in enumerate(recordings)]
+
+
+def fit_recognition_model(parts: list[TrainingPart], sources: list[str]) -> TrainingResult:
+    """The recognition descriptor's model: Eq. 3 on 6 m place targets, each part in its own
+    frame, with the acceptance threshold calibrated on P1 within each part."""
+    from vbrl_ros.training.targets import place_labels
+    from vbrl_ros.training.threshold import recommend_threshold
+
     descriptors = np.concatenate([p[1] for p in parts])
     positions = np.concatenate([p[2] for p in parts])
     source = np.concatenate([np.full(len(p[1]), k) for k, p in enumerate(parts)])
     keyframe_index = np.concatenate([np.arange(len(p[1])) for p in parts])
     labels, names = place_labels(positions, 6.0, source)
     result = fit_model(
-        descriptors, labels, names, config, lambda1=10.0, lambda2=0.1,
-        metadata={"trained_on": [p[0] for p in parts], "sources": [str(Path(r).resolve()) for r in recordings],
+        descriptors, labels, names, recognition_config(), lambda1=10.0, lambda2=0.1,
+        metadata={"trained_on": [p[0] for p in parts], "sources": sources,
                   "targets": f"places ({len(names)} cells of 6 m, per source)",
                   "translation_search": RECOGNITION_TRANSLATION_SEARCH_M},
     )
-    model = result.model
-    threshold = recommend_threshold(model, descriptors, source, positions, source_of_row=source,
+    threshold = recommend_threshold(result.model, descriptors, source, positions, source_of_row=source,
                                     keyframe_index=keyframe_index, protocols=("P1",))
     if threshold is None:
         raise RuntimeError("the training data has no revisits to calibrate on")
-    model.metadata["distance_threshold"] = threshold.pop("distance_threshold")
-    model.metadata["distance_threshold_info"] = threshold
-    model.save(out)
+    result.model.metadata["distance_threshold"] = threshold.pop("distance_threshold")
+    result.model.metadata["distance_threshold_info"] = threshold
+    return result
+
+
+def build_default_model(
+    out: Path = DEFAULT_MODEL_PATH, recordings: tuple[Path, ...] = (),
+    towns: tuple[SimulatedTown, ...] = BUILTIN_TOWNS, progress: bool = True,
+) -> TrainingResult:
+    """The built-in model (:func:`fit_recognition_model`) on the simulated ``towns`` and the
+    real ``recordings``; writes ``out``."""
+    config = recognition_config()
+    parts = simulated_recognition_data(towns, config, progress) + recording_parts(recordings, config, progress)
+    result = fit_recognition_model(parts, [str(Path(r).resolve()) for r in recordings])
+    result.model.save(out)
     return result
