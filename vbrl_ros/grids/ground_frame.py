@@ -93,14 +93,23 @@ def lowest_points(points, cell, min_range, max_range):
 
 
 def _rotation_onto_z(normal: np.ndarray) -> np.ndarray:
-    """The smallest rotation taking the unit vector ``normal`` onto +z (keeps the heading)."""
+    """The rotation taking the unit vector ``normal`` onto +z that keeps the heading: the
+    sensor's x axis still points the same way in the horizontal plane (the smallest rotation
+    would turn it by up to ~2 degrees under a combined roll and pitch of 20 degrees)."""
     z = np.array([0.0, 0.0, 1.0])
     axis = np.cross(normal, z)
     s, c = float(np.linalg.norm(axis)), float(normal @ z)
     if s < 1e-12:
         return np.eye(3)
     k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + k + k @ k * ((1.0 - c) / (s * s))
+    return _without_yaw(np.eye(3) + k + k @ k * ((1.0 - c) / (s * s)))
+
+
+def _without_yaw(R: np.ndarray) -> np.ndarray:
+    """``R`` turned about z so that its x axis has no heading: Rz(-yaw) R."""
+    yaw = math.atan2(R[1, 0], R[0, 0])
+    c, s = math.cos(-yaw), math.sin(-yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R
 
 
 def _sample_triples(n: int, count: int) -> np.ndarray:
@@ -140,10 +149,7 @@ def fit_ground(low: np.ndarray, max_tilt_deg: float = MAX_TILT_DEG) -> tuple[np.
 def gravity_rotation(world_rotation: np.ndarray) -> np.ndarray:
     """Roll and pitch of a sensor's orientation in a gravity-aligned world (odometry's), its
     yaw removed: the ``gravity_rotation`` that :func:`ground_frame` levels by."""
-    R = np.asarray(world_rotation, dtype=np.float64)[:3, :3]
-    yaw = math.atan2(R[1, 0], R[0, 0])
-    c, s = math.cos(-yaw), math.sin(-yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R
+    return _without_yaw(np.asarray(world_rotation, dtype=np.float64)[:3, :3])
 
 
 def ground_frame(points: np.ndarray, gravity_rotation: np.ndarray | None = None) -> GroundFrame:
@@ -162,6 +168,7 @@ def ground_frame(points: np.ndarray, gravity_rotation: np.ndarray | None = None)
         below = -float(np.percentile(low[:, 2], 10)) if len(low) else FALLBACK_HEIGHT_M[1]
         return GroundFrame(base, float(np.clip(below, *FALLBACK_HEIGHT_M)), False)
     normal, height = fit
-    if gravity_rotation is not None:  # keep the given tilt; the plane only sets the height
-        return GroundFrame(base, height * normal[2], True)
+    if gravity_rotation is not None:  # keep the given tilt; the plane only sets the height:
+        # the ground straight below the sensor (on a slope: height / cos(slope))
+        return GroundFrame(base, height / normal[2], True)
     return GroundFrame(_rotation_onto_z(normal) @ base, height, True)
