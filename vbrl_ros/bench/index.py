@@ -1,6 +1,6 @@
 """``vbrl bench`` index section: query + insert at 1k / 10k / 100k keyframes (docs/design.md §5).
 
-For the Cartesian descriptor (default model, d ~ 7.9k, S = 1) and a polar one
+For the Cartesian descriptor (the shipped paper-configuration model, d ~ 7.9k, S = 1) and a polar one
 (S = 24, d ~ 15.7k active; see :mod:`vbrl_ros.bench.descriptors` for how it
 is made without a trained polar model) and both storages, a database is grown
 to each size from real simulated descriptors (:func:`replicate`) and timed:
@@ -25,7 +25,7 @@ to each size from real simulated descriptors (:func:`replicate`) and timed:
 against the summer database, the paper's cross-season protocol): top-1
 agreement and Recall@1 (match within 3 m) of index and brute force, and for
 polar the error of the yaw against the poses. ``pruning`` reports what a
-near-zero prune of the default model's learned weights saves and what it
+near-zero prune of the paper model's learned weights saves and what it
 costs in Recall@1 against unpruned brute force.
 """
 
@@ -309,7 +309,7 @@ def format_table(results: dict[str, Any]) -> str:
     p = results["pruning"]
     b, d = p["bytes_per_keyframe"], p["drive_vs_unpruned_exact"]
     lines.append(
-        f"prune {p['prune']} of the default model's weights: {p['active_rows']['0']} -> "
+        f"prune {p['prune']} of the paper model's weights: {p['active_rows']['0']} -> "
         f"{p['active_rows'][str(p['prune'])]} rows, bytes/keyframe float32 {b['0']['float32']} -> "
         f"{b[str(p['prune'])]['float32']}, float16 {b['0']['float16']} -> "
         f"{b[str(p['prune'])]['float16']}; drive top-1 = unpruned brute force "

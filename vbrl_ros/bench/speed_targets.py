@@ -17,6 +17,8 @@ import numpy as np
 
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
 from vbrl_ros.features.featurizer import Featurizer
+from vbrl_ros.index.translation_search import view_offsets
+from vbrl_ros.training.presets import RECOGNITION_TRANSLATION_SEARCH_M, recognition_config
 
 BENCH_POINTS = 120_000
 
@@ -58,6 +60,12 @@ def measure(repeats: int = 30, config: VBRLConfig | None = None) -> dict[str, An
     # the polar grid has ~2.6x the occupied voxels: same budget
     polar = Featurizer(VBRLConfig(grid=VoxelGridConfig(kind="polar")))
     polar_s = median_seconds(lambda: polar.describe(scan), repeats)
+    # the built-in model's descriptor as the node computes it per keyframe: level the scan on
+    # its ground, then describe it from every translation-search viewpoint
+    recognition = Featurizer(recognition_config())
+    offsets = view_offsets(RECOGNITION_TRANSLATION_SEARCH_M)
+    recognition_s = median_seconds(
+        lambda: recognition.describe_views(scan, offsets, recognition.frame(scan)), repeats)
     solver = time_one_iteration(n=700, d=featurizer.dimension)
     return {
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
@@ -66,6 +74,9 @@ def measure(repeats: int = 30, config: VBRLConfig | None = None) -> dict[str, An
                      "median_ms": 1e3 * describe_s, "target_ms": 10.0},
         "describe_polar": {"points": len(scan), "dimension": polar.dimension,
                            "median_ms": 1e3 * polar_s, "target_ms": 10.0},
+        "describe_recognition": {"points": len(scan), "dimension": recognition.dimension,
+                                 "views": len(offsets), "median_ms": 1e3 * recognition_s,
+                                 "target_ms": 10.0},
         "solver_iteration": {"n": 700, "d": featurizer.dimension, **solver},
     }
 
@@ -76,7 +87,9 @@ def format_table(results: dict[str, Any]) -> str:
         (f"describe one scan{suffix}", f"{d['points']:,} points -> d={d['dimension']}",
          f"{d['median_ms']:.2f} ms", f"<= {d['target_ms']:.0f} ms",
          "ok" if d["median_ms"] <= d["target_ms"] else "MISSED")
-        for suffix, d in (("", results["describe"]), (", polar grid", results["describe_polar"]))
+        for suffix, d in (("", results["describe"]), (", polar grid", results["describe_polar"]),
+                          (f", built-in (levelled, {results['describe_recognition']['views']} views)",
+                           results["describe_recognition"]))
     ] + [
         ("solver iteration, fast path", f"n={s['n']}, d={s['d']} ({s['fast_path']})",
          f"{1e3 * s['fast_s']:.1f} ms", "", ""),

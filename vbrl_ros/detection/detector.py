@@ -74,16 +74,17 @@ class LoopClosureDetector:
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         frame = self.featurizer.frame(points, gravity)
-        framed = frame.apply(points)
         views = self.scorer.compact(self.model.standardize(
-            self.featurizer.describe_views(framed, self.view_offsets)))
+            self.featurizer.describe_views(points, self.view_offsets, frame)))
         t1 = time.perf_counter()
         candidates = self.database.query_views(
             views, self.view_offsets, top_k=cfg.top_k, session=cfg.session, stamp=stamp,
             exclude_recent_s=cfg.exclude_recent_s,
         )
         t2 = time.perf_counter()
-        cloud = downsample_for_storage(framed, cfg.verification_voxel) if cfg.verify else None
+        # thinned first, then levelled: the same cloud for a fraction of the rotations
+        cloud = (frame.apply(downsample_for_storage(points, cfg.verification_voxel)).astype(np.float32)
+                 if cfg.verify else None)
         closures: list[LoopClosure] = []
         rejected = 0
         for candidate in candidates:

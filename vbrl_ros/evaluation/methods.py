@@ -75,7 +75,7 @@ def _describe(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(views (V, d), Scan Context): the VBRL views as the node computes them."""
     assert _worker is not None
     featurizer, sc_config, offsets = _worker
-    views = featurizer.describe_views(featurizer.frame(points).apply(points), offsets)
+    views = featurizer.describe_views(points, offsets, featurizer.frame(points))
     return views, scan_context(points, sc_config)
 
 

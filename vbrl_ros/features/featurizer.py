@@ -183,31 +183,37 @@ class Featurizer:
         columns ignored); see :meth:`frame` for ``gravity``."""
         points = _as_points(points)
         frame = self.frame(points, gravity)
+        if self.modality_names == ("height",):  # levelled inside the height map's pass
+            return self.describe_views(points, np.zeros((1, 2)), frame)[0]
         return self.describe_framed(points if self.config.grid.frame == "sensor" else frame.apply(points))
 
     def describe_framed(self, points: np.ndarray) -> np.ndarray:
         """Descriptor of points already in the grid's frame (see :meth:`frame`)."""
         return self._vector(self.modalities(points))
 
-    def describe_views(self, points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-        """(len(offsets), d) float32: the scan (in the grid's frame) described from each of the
-        viewpoints (x, y) in ``offsets`` (metres), as if the sensor had stood there.
+    def describe_views(self, points: np.ndarray, offsets: np.ndarray,
+                       frame: GroundFrame | None = None) -> np.ndarray:
+        """(len(offsets), d) float32: the scan described from each of the viewpoints (x, y) in
+        ``offsets`` (metres, in the grid's frame), as if the sensor had stood there.
 
-        Height-only descriptors read every view from one height map (cheap); others re-run the
-        featurizer on shifted points.
+        ``points`` are in the grid's frame, or in the sensor frame with their ``frame``
+        (:meth:`frame`). Height-only descriptors read every view from one height map
+        (cheap); others re-run the featurizer on shifted points.
         """
         offsets = np.asarray(offsets, dtype=np.float64).reshape(-1, 2)
         points = _as_points(points)
-        if self.modality_names != ("height",):
-            shift = np.zeros(points.shape[1])
-            rows = []
-            for dx, dy in offsets:
-                shift[:2] = dx, dy
-                rows.append(self.describe_framed(points - shift))
-            return np.stack(rows) if rows else np.zeros((0, self.dimension), np.float32)
-        cells = self._height_cells(points)
-        return np.stack([self._vector([self._heights(cells, dx, dy)]) for dx, dy in offsets]
-                        ) if len(offsets) else np.zeros((0, self.dimension), np.float32)
+        if self.modality_names == ("height",):
+            cells = self._height_cells(points, frame)
+            return np.stack([self._vector([self._heights(cells, dx, dy)]) for dx, dy in offsets]
+                            ) if len(offsets) else np.zeros((0, self.dimension), np.float32)
+        if frame is not None:
+            points = frame.apply(points)
+        shift = np.zeros(points.shape[1])
+        rows = []
+        for dx, dy in offsets:
+            shift[:2] = dx, dy
+            rows.append(self.describe_framed(points - shift))
+        return np.stack(rows) if rows else np.zeros((0, self.dimension), np.float32)
 
     def _vector(self, blocks: list[np.ndarray]) -> np.ndarray:
         parts = [b.ravel() for b in blocks]
@@ -215,10 +221,12 @@ class Featurizer:
             parts = [p / total if (total := np.abs(p).sum()) > 0 else p for p in parts]
         return np.concatenate(parts).astype(np.float32)
 
-    def _height_cells(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _height_cells(self, points: np.ndarray, frame: GroundFrame | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         grid = self.config.grid
         reach = (grid.max_range if grid.kind == "polar" else grid.extent_xy) + MARGIN_M
-        return height_cells(points, reach, CELL_M, self.grid.z_edges)
+        frame = frame or GroundFrame.identity()
+        return height_cells(points, frame.rotation, float(frame.height), reach, CELL_M, self.grid.z_edges)
 
     def _heights(self, cells: tuple[np.ndarray, np.ndarray, np.ndarray],
                  dx: float = 0.0, dy: float = 0.0) -> np.ndarray:

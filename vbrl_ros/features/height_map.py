@@ -25,18 +25,24 @@ MARGIN_M = 4.0  # the map reaches this far beyond the grid, for shifted viewpoin
 
 
 @njit(cache=True, nogil=True)
-def height_cells(points, reach, cell, z_edges):
+def height_cells(points, rotation, lift, reach, cell, z_edges):
     """The scan as a height map: ``(cells, 2)`` x, y of each occupied column centre,
     ``(cells,)`` its layer-relative top height and ``(cells,)`` its layer.
 
-    Columns are ``cell`` metres wide, within ``reach`` metres of the origin in x and y;
-    points outside the layers (and non-finite ones) are dropped.
+    Points are taken into the grid frame on the fly, ``R p + (0, 0, lift)`` (the scan's
+    ground frame; identity and 0 for points already in it). Columns are ``cell`` metres
+    wide, within ``reach`` metres of the origin in x and y; points outside the layers
+    (and non-finite ones) are dropped.
     """
     layers = z_edges.shape[0] - 1
     side = int(2.0 * reach / cell) + 1
     top = np.full(side * side * layers, -1.0)
+    R = rotation
     for i in range(points.shape[0]):
-        x, y, z = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
+        px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
+        x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz
+        y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz
+        z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + lift
         if not (abs(x) < reach and abs(y) < reach and z >= z_edges[0] and z < z_edges[layers]):
             continue
         layer = 0

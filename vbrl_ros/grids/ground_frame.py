@@ -141,7 +141,7 @@ def fit_ground(low: np.ndarray, max_tilt_deg: float = MAX_TILT_DEG) -> tuple[np.
     if len(chosen) < MIN_INLIERS:
         return None
     centre = chosen.mean(0)
-    normal = np.linalg.svd(chosen - centre)[2][2]
+    normal = np.linalg.svd(chosen - centre, full_matrices=False)[2][2]
     normal = normal if normal[2] > 0 else -normal
     return normal, float(-normal @ centre)
 

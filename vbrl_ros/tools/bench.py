@@ -37,7 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--polar-model", type=Path, metavar="MODEL",
         help="a trained polar model (vbrl train --grid polar) for the index section's polar rows; "
-             "default: a stand-in derived from the built-in Cartesian model",
+             "default: a stand-in derived from the shipped paper-configuration model",
     )
     parser.set_defaults(func=run)
 
