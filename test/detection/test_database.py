@@ -268,7 +268,7 @@ def test_truncated_file_is_refused(tmp_path):
 def test_missing_and_foreign_files_are_refused(tmp_path):
     _assert_refused(tmp_path / "nothing.npz", "does not exist")
     (tmp_path / "text.npz").write_text("hello")
-    _assert_refused(tmp_path / "text.npz", "not a readable")
+    _assert_refused(tmp_path / "text.npz", "not a vbrl_ros keyframe database file .it is a text file")
     np.savez(tmp_path / "foreign.npz", W=np.ones(3))
     _assert_refused(tmp_path / "foreign.npz", "not a vbrl_ros keyframe database")
     np.savez(tmp_path / "model.npz", format=np.array("vbrl_ros.model"), format_version=np.array(1))

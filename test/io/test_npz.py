@@ -1,7 +1,9 @@
+import zipfile
+
 import numpy as np
 import pytest
 
-from vbrl_ros.io.npz import one_line, read_npz
+from vbrl_ros.io.npz import foreign_format, one_line, read_npz
 
 
 class Refused(ValueError):
@@ -15,7 +17,11 @@ def test_reads_arrays(tmp_path):
 
 @pytest.mark.parametrize("content, match", [
     (None, "thing file .* does not exist"),
-    (b"not a zip", "not a readable .npz thing"),
+    (b"not a zip", "is not a vbrl_ros thing file .it is a text file"),
+    (b"", "it is empty"),
+    (b"\x93NUMPY\x01\x00", "a single .npy array"),
+    (bytes(range(256)), r"\(not an .npz archive\)"),
+    (b"PK\x03\x04cut short", "truncated or corrupt"),
 ])
 def test_unreadable_files_raise_the_callers_error_in_one_line(tmp_path, content, match):
     path = tmp_path / "a.npz"
@@ -24,6 +30,20 @@ def test_unreadable_files_raise_the_callers_error_in_one_line(tmp_path, content,
     with pytest.raises(Refused, match=match) as error:
         read_npz(path, Refused, "thing")
     assert "\n" not in str(error.value)
+
+
+def test_a_plain_zip_is_not_an_npz(tmp_path):
+    with zipfile.ZipFile(tmp_path / "a.npz", "w") as archive:
+        archive.writestr("notes.txt", "hello")
+    with pytest.raises(Refused, match="a zip archive, not an .npz: 'notes.txt'"):
+        read_npz(tmp_path / "a.npz", Refused, "thing")
+
+
+def test_foreign_format_names_the_tag_or_the_arrays():
+    assert foreign_format({"format": np.array("other.thing")}, "mine") == \
+        "its format tag is 'other.thing', not 'mine'"
+    assert foreign_format({"b": np.ones(1), "a": np.ones(1)}, "mine") == \
+        "an .npz without the format tag 'mine'; it holds a, b"
 
 
 def test_pickled_arrays_are_refused(tmp_path):

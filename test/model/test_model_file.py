@@ -70,11 +70,36 @@ def test_foreign_npz_is_refused(tmp_path):
         load_model(path)
 
 
+def _zip_of_text(path):
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("readme.txt", "not arrays")
+
+
+@pytest.mark.parametrize("name, write, reason", [
+    ("notes.txt", lambda p: p.write_text("model_path: /data/model.npz\n"), "it is a text file"),
+    ("noise.npz", lambda p: p.write_bytes(np.random.default_rng(0).bytes(4096)), "not an .npz archive"),
+    ("plain.zip", _zip_of_text, "a zip archive, not an .npz"),
+    ("array.npy", lambda p: np.save(p, np.ones(3)), "a single .npy array"),
+    ("other.npz", lambda p: np.savez(p, weights=np.ones(3)),
+     "without the format tag 'vbrl_ros.model'; it holds weights"),
+    ("keyframes.npz", lambda p: np.savez(p, format=np.array("vbrl_ros.keyframes")),
+     "its format tag is 'vbrl_ros.keyframes'"),
+])
+def test_a_file_that_is_not_a_model_says_so_in_one_line(tmp_path, name, write, reason):
+    path = tmp_path / name
+    write(path)
+    with pytest.raises(ModelFileError) as error:
+        load_model(path)
+    message = str(error.value)
+    assert message.startswith(f"{path} is not a vbrl_ros model file (") and reason in message
+    assert "\n" not in message and "allow_pickle" not in message
+
+
 def test_pickled_content_is_never_loaded(tmp_path):
     path = tmp_path / "pickled.npz"
     np.savez(path, format=np.array("vbrl_ros.model"), format_version=np.array(1),
              W=np.array([{"evil": 1}], dtype=object))
-    with pytest.raises(ModelFileError, match="truncated or corrupt"):
+    with pytest.raises(ModelFileError, match="pickled object arrays, which are never loaded"):
         load_model(path)
 
 

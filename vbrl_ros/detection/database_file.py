@@ -20,7 +20,7 @@ import numpy as np
 
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.io.atomic import atomic_write
-from vbrl_ros.io.npz import one_line, read_npz
+from vbrl_ros.io.npz import foreign_format, one_line, read_npz
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
 DATABASE_FORMAT = "vbrl_ros.keyframes"
@@ -74,7 +74,8 @@ def read_database(path: str | Path, scorer: WeightedL1Scorer, model_id: str) -> 
     contents = read_npz(path, DatabaseFileError, "keyframe database")
     if _scalar_str(contents.get("format")) != DATABASE_FORMAT:
         raise DatabaseFileError(
-            f"{path} is not a vbrl_ros keyframe database (no format tag '{DATABASE_FORMAT}')"
+            f"{path} is not a vbrl_ros keyframe database file "
+            f"({foreign_format(contents, DATABASE_FORMAT)})"
         )
     version = _scalar_int(contents.get("format_version"))
     if version not in READABLE_VERSIONS:

@@ -33,7 +33,7 @@ import numpy as np
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.features.featurizer import Featurizer, FeatureLayout
 from vbrl_ros.io.atomic import atomic_write
-from vbrl_ros.io.npz import one_line, read_npz
+from vbrl_ros.io.npz import foreign_format, one_line, read_npz
 from vbrl_ros.model.scoring import WeightedL1Scorer, importance_weights, row_weights
 
 MODEL_FORMAT = "vbrl_ros.model"
@@ -158,7 +158,7 @@ def load_model(path: str | Path, expected_config: VBRLConfig | None = None) -> V
     path = Path(path)
     contents = read_npz(path, ModelFileError, "model")
     if str(contents.get("format", "")) != MODEL_FORMAT:
-        raise ModelFileError(f"{path} is not a vbrl_ros model file (no format tag '{MODEL_FORMAT}')")
+        raise ModelFileError(f"{path} is not a vbrl_ros model file ({foreign_format(contents, MODEL_FORMAT)})")
     version = int(contents.get("format_version", -1))
     if version != MODEL_FORMAT_VERSION:
         raise ModelFileError(
