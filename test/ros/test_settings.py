@@ -4,7 +4,7 @@ import pytest
 import yaml
 
 from vbrl_ros.detection.settings import DetectorSettings, SettingsError
-from vbrl_ros.ros.settings import NodeSettings
+from vbrl_ros.ros.settings import DESCRIPTIONS, NodeSettings, parameter_file, unknown_parameters
 
 CONFIG = Path(__file__).resolve().parents[2] / "config" / "vbrl.yaml"
 
@@ -13,6 +13,20 @@ def test_yaml_defaults_equal_the_code_defaults():
     params = yaml.safe_load(CONFIG.read_text())["/**"]["ros__parameters"]
     assert params == NodeSettings.defaults()
     assert NodeSettings.from_values(params) == NodeSettings()
+
+
+def test_every_parameter_has_one_description_and_the_yaml_is_generated_from_them():
+    assert list(DESCRIPTIONS) == NodeSettings.names()
+    assert all(text.strip() for text in DESCRIPTIONS.values())
+    assert CONFIG.read_text() == parameter_file(), (
+        "config/vbrl.yaml is out of date: python -m vbrl_ros.ros.settings > config/vbrl.yaml")
+
+
+def test_unknown_names_come_with_the_closest_known_one():
+    assert unknown_parameters(["cloud_topics"]) == (
+        "unknown parameter 'cloud_topics' (did you mean 'cloud_topic'?); vbrl_node --help lists them")
+    message = unknown_parameters(["topk", "zzz"])
+    assert message.startswith("unknown parameters 'topk' (did you mean 'top_k'?), 'zzz';")
 
 
 @pytest.mark.parametrize(

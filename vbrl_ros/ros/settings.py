@@ -1,15 +1,20 @@
-"""The node's parameters: names, defaults, validation. No ROS import.
+"""The node's parameters: names, defaults, meanings, validation. No ROS import.
 
 The ROS parameters are flat: the node's own settings and, in their place in
 the list, the detector's (:class:`~vbrl_ros.detection.settings.DetectorSettings`,
 all but ``session``, which the node derives from ``session_id``).
-``config/vbrl.yaml`` carries the same defaults in ROS 2 parameter-file
-format; ``test/ros/test_settings.py`` keeps the two in step.
+:data:`DESCRIPTIONS` is the one place a parameter's meaning is written: the
+node's ``--help``, its ROS parameter descriptors and ``config/vbrl.yaml``
+(:func:`parameter_file`; regenerate with ``python -m vbrl_ros.ros.settings``)
+all read it, and ``test/ros/test_settings.py`` keeps the file in step.
 """
 
 from __future__ import annotations
 
+import difflib
+import json
 import math
+import textwrap
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -20,25 +25,60 @@ from vbrl_ros.index.parameters import IndexParameters
 DETECTOR_PARAMETERS = tuple(f.name for f in fields(DetectorSettings) if f.name != "session")
 
 
+#: What each parameter means, in a sentence or two a user reads in ``vbrl_node --help``.
+DESCRIPTIONS: dict[str, str] = {
+    "cloud_topic": "sensor_msgs/PointCloud2 topic of the LiDAR scans (subscribed with sensor-data QoS).",
+    "odom_topic": "nav_msgs/Odometry topic; with it a keyframe comes every keyframe_distance metres of "
+                  "travel. Empty: no odometry, a keyframe every keyframe_interval seconds.",
+    "model_path": "VBRL model file (.npz, written by vbrl train). Empty: the package's built-in model.",
+    "database_path": "keyframe database file (.npz): loaded at start if it exists, saved every save_every "
+                     "keyframes and at shutdown. Empty: keyframes are not kept across restarts.",
+    "session_id": "session number of this run's keyframes. -1: one more than the largest in the database.",
+    "keyframe_distance": "metres of odometry travel between keyframes (with odom_topic).",
+    "keyframe_interval": "seconds between keyframes (without odometry).",
+    "level_from_odometry": "level each scan by odometry's roll and pitch (odometry must be in the LiDAR's "
+                           "frame) instead of by its own ground; the ground still sets the height.",
+    "distance_threshold": "accept a candidate whose distance is <= this (lower = more similar). "
+                          "0: the model's own calibrated threshold.",
+    "exclude_recent_s": "same-session keyframes younger than this many seconds are not candidates.",
+    "top_k": "candidates scored, and at most verified, per keyframe.",
+    "max_closures": "accepted loop closures published per keyframe.",
+    "verify": "check each candidate by KISS-ICP registration of the two clouds.",
+    "min_fitness": "verified closures whose inlier fraction is below this are rejected (0 to 1).",
+    "verification_voxel": "voxel size in metres of the stored clouds and of their registration.",
+    "translation_search": "metres between the extra viewpoints a query is also described from. 0: off; "
+                          "-1: the model's own (1.5 for the built-in model).",
+    "save_every": "keyframes between database saves. 0: only at shutdown or on ~/save_database.",
+    "weight_prune": "descriptor rows weighing less than this times the largest row weight are neither "
+                    "stored nor scored (learned sparsity; 0.0001 drops about 13 % of the built-in "
+                    "model's rows, 0.003 % of its weight).",
+    "descriptor_storage": "float32, or float16: half the memory per keyframe.",
+    "loop_closure_topic": "std_msgs/Float64MultiArray topic of the accepted closures, one row each, "
+                          "columns named in the message's layout.",
+    "lio_sam_topic": "std_msgs/Float64MultiArray topic of each closure as LIO-SAM reads it: "
+                     "[query stamp, match stamp].",
+    "markers_topic": "visualization_msgs/MarkerArray topic of the keyframes and closures, for RViz.",
+    "map_frame": "frame id of the markers.",
+    "diagnostics_period": "seconds between /diagnostics status messages and marker updates.",
+}
+
+
 @dataclass(frozen=True)
 class NodeSettings:
+    """The node's settings; :data:`DESCRIPTIONS` says what each parameter means."""
+
     cloud_topic: str = "/points"
-    odom_topic: str = ""  # empty: no odometry, keyframes by time
-    model_path: str = ""  # empty: the package's built-in default model
-    database_path: str = ""  # empty: keyframes are not kept across restarts
-    session_id: int = -1  # -1: one more than the largest session in the database
-    keyframe_distance: float = 1.0  # metres of travel between keyframes (with odometry)
-    keyframe_interval: float = 1.0  # seconds between keyframes (without odometry)
-    # level scans by odometry's roll and pitch (its frame must be the LiDAR's) instead of
-    # their own ground; the ground still sets the height
+    odom_topic: str = ""
+    model_path: str = ""
+    database_path: str = ""
+    session_id: int = -1
+    keyframe_distance: float = 1.0
+    keyframe_interval: float = 1.0
     level_from_odometry: bool = False
     detector: DetectorSettings = field(default_factory=DetectorSettings)
-    save_every: int = 50  # keyframes between database saves; 0: only on shutdown/service
-    # Learned sparsity: descriptor rows weighing < weight_prune x the largest row weight
-    # are neither stored nor scored (0.0001: about 13 % of the default model's rows,
-    # 0.003 % of its weight).
+    save_every: int = 50
     weight_prune: float = 0.0001
-    descriptor_storage: str = "float32"  # or "float16": half the memory per keyframe
+    descriptor_storage: str = "float32"
     loop_closure_topic: str = "~/loop_closures"
     lio_sam_topic: str = "/lio_loop/loop_closure_detection"
     markers_topic: str = "~/markers"
@@ -67,7 +107,7 @@ class NodeSettings:
         clean: dict[str, Any] = {}
         for name, value in values.items():
             if name not in kinds:
-                raise SettingsError(f"unknown parameter '{name}'")
+                raise SettingsError(unknown_parameters([name]))
             kind = kinds[name]
             if kind is float and isinstance(value, int) and not isinstance(value, bool):
                 value = float(value)
@@ -102,3 +142,51 @@ class NodeSettings:
             raise SettingsError(f"parameter 'session_id' must be >= 0 (or -1 for auto), got {self.session_id}")
         if not self.cloud_topic:
             raise SettingsError("parameter 'cloud_topic' must not be empty")
+
+
+def unknown_parameters(names: list[str]) -> str:
+    """One line naming parameters the node does not have, each with the closest one it has.
+
+    rclpy drops an override nobody declared without a word, so a misspelled
+    ``cloud_topics`` would leave the node listening on the default topic.
+    """
+    known = NodeSettings.names()
+    described = []
+    for name in names:
+        close = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
+        described.append(f"'{name}'" + (f" (did you mean '{close[0]}'?)" if close else ""))
+    noun = "parameter" if len(names) == 1 else "parameters"
+    return f"unknown {noun} {', '.join(described)}; vbrl_node --help lists them"
+
+
+def yaml_value(value: Any) -> str:
+    """A default as it is written in a parameter file or after ``-p name:=``."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return value if value and value[0] not in "\"'{[&*!|>%@`#" else json.dumps(value)
+    return repr(value)
+
+
+def parameter_file() -> str:
+    """``config/vbrl.yaml``: every parameter at its default, its description above it."""
+    lines = [
+        "# vbrl_node parameters (ROS 2 parameter-file format), every one at its default.",
+        "#   vbrl_node --ros-args --params-file config/vbrl.yaml",
+        "# Every value is checked at start: a bad value or an unknown name stops the node",
+        "# with a message naming it. Generated from vbrl_ros/ros/settings.py",
+        "# (python -m vbrl_ros.ros.settings > config/vbrl.yaml); edit the meanings there.",
+        "/**:",
+        "  ros__parameters:",
+    ]
+    for name, default in NodeSettings.defaults().items():
+        # "\0": never break a line between a number and its unit
+        text = DESCRIPTIONS[name].replace(" %", "\0%")
+        lines += [line.replace("\0", " ")
+                  for line in textwrap.wrap(text, 96, initial_indent="    # ", subsequent_indent="    # ")]
+        lines.append(f"    {name}: {yaml_value(default)}")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    print(parameter_file(), end="")
