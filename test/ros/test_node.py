@@ -25,16 +25,49 @@ def node_command(*params: str) -> list[str]:
     return [*NODE, "--ros-args", *[arg for p in params for arg in ("-p", p)]]
 
 
-def test_help_lists_the_parameters():
+def test_help_lists_every_parameter_with_its_default_and_meaning():
+    from vbrl_ros.ros.settings import DESCRIPTIONS, NodeSettings, yaml_value
+
     result = subprocess.run([*NODE, "--help"], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0
-    assert "keyframe_distance" in result.stdout and "database_path" in result.stdout
+    text = " ".join(result.stdout.split())  # the descriptions are wrapped
+    for name, default in NodeSettings.defaults().items():
+        assert f"{name} = {yaml_value(default)} {DESCRIPTIONS[name]}" in text, name
+
+
+def start_fails(*args: str, cwd: Path | None = None) -> str:
+    """Start the node with ``args``; it must exit 2 with one line of stderr, which is returned."""
+    result = subprocess.run([*NODE, *args], env=isolated_ros_env(), cwd=cwd, capture_output=True,
+                            text=True, timeout=60)
+    assert result.returncode == 2, result.stderr
+    # rcl itself logs one "[ERROR] [...] [rcl]: Failed to parse global arguments" on a broken YAML
+    lines = [line for line in result.stderr.splitlines() if "] [rcl]: " not in line]
+    assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
+    return lines[0]
+
+
+def test_a_missing_params_file_is_one_line_naming_it(tmp_path):
+    line = start_fails("--ros-args", "--params-file", "config/vbrl.yaml", cwd=tmp_path)
+    assert "--params-file config/vbrl.yaml does not exist" in line
+    assert str(tmp_path) in line  # where a relative path was looked for
+    assert str(Path(__file__).resolve().parents[2] / "config" / "vbrl.yaml") in line  # the shipped one
+    (tmp_path / "broken.yaml").write_text("/**:\n  ros__parameters:\n    top_k: [1,\n")
+    line = start_fails("--ros-args", "--params-file", str(tmp_path / "broken.yaml"))
+    assert "cannot start" in line and "broken.yaml" in line and ".c:" not in line
+
+
+def test_an_unknown_parameter_in_a_params_file_stops_the_start(tmp_path):
+    params = tmp_path / "params.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    keyframe_distanse: 2.0\n")
+    line = start_fails("--ros-args", "--params-file", str(params))
+    assert "unknown parameter 'keyframe_distanse' (did you mean 'keyframe_distance'?)" in line
 
 
 @pytest.mark.parametrize(
     "param, named",
     [("keyframe_distance:=-1.0", "keyframe_distance"), ("top_k:=abc", "top_k"),
-     ("min_fitness:=2.0", "min_fitness"), ("model_path:=/nonexistent/model.npz", "does not exist")],
+     ("min_fitness:=2.0", "min_fitness"), ("model_path:=/nonexistent/model.npz", "does not exist"),
+     ("cloud_topics:=/velodyne_points", "unknown parameter 'cloud_topics' (did you mean 'cloud_topic'?)")],
 )
 def test_a_bad_parameter_stops_the_start_naming_it(param, named):
     env = isolated_ros_env()

@@ -10,7 +10,10 @@ queue grows without bound. A bad message is logged, counted and skipped.
 
 from __future__ import annotations
 
+import os
+import re
 import sys
+import textwrap
 import threading
 import time
 from collections import deque
@@ -41,7 +44,7 @@ from vbrl_ros.model.builtin import load_default_model
 from vbrl_ros.model.model_file import ModelFileError, load_model
 from vbrl_ros.ros.messages import closures_message, lio_sam_message
 from vbrl_ros.ros.outputs import NodeStats, diagnostics_status, keyframe_markers
-from vbrl_ros.ros.settings import NodeSettings
+from vbrl_ros.ros.settings import DESCRIPTIONS, NodeSettings, unknown_parameters, yaml_value
 
 
 def stamp_seconds(stamp) -> float:
@@ -106,9 +109,24 @@ class VbrlNode(Node):
         for name, default in NodeSettings.defaults().items():
             # dynamic typing: a wrongly typed value reaches our validation,
             # which names the parameter, instead of an rclpy type exception
-            self.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True))
+            descriptor = ParameterDescriptor(description=DESCRIPTIONS[name], dynamic_typing=True)
+            self.declare_parameter(name, default, descriptor)
             values[name] = self.get_parameter(name).value
+        self._refuse_unknown_overrides()
         return NodeSettings.from_values(values)
+
+    def _refuse_unknown_overrides(self) -> None:
+        """Stop on a -p or parameter-file name that no one declared.
+
+        rclpy drops such overrides silently, so a misspelled ``cloud_topics``
+        would leave a robot running on the default topic with nothing said.
+        What rclpy declares itself (use_sim_time, ...) counts as known. The
+        overrides are rclpy's protected ``Node._parameter_overrides``: it has
+        no public way to list them without declaring them all.
+        """
+        unknown = [name for name in self._parameter_overrides if not self.has_parameter(name)]
+        if unknown:
+            raise SettingsError(unknown_parameters(sorted(unknown)))
 
     def _open_database(self) -> KeyframeDatabase:
         scorer = self.model.scorer(prune=self.settings.weight_prune)
@@ -255,25 +273,87 @@ class VbrlNode(Node):
             print(f"[vbrl_node] {self.save_database()}", file=sys.stderr)
 
 
-USAGE = """usage: vbrl_node [--ros-args --params-file config/vbrl.yaml -p name:=value ...]
+USAGE = """usage: vbrl_node [-h] [--ros-args [--params-file FILE] [-p NAME:=VALUE] ...]
 
-Online VBRL loop-closure detection. Parameters (defaults):
-{parameters}
+Online VBRL loop-closure detection: scans in, loop closures out.
 Topics: subscribes cloud_topic (sensor_msgs/PointCloud2, sensor-data QoS) and
 odom_topic (nav_msgs/Odometry); publishes loop_closure_topic and lio_sam_topic
 (std_msgs/Float64MultiArray), markers_topic (visualization_msgs/MarkerArray),
 /diagnostics. Services: ~/save_database, ~/clear_database (std_srvs/Trigger).
-"""
+An unknown parameter name or a bad value stops the start with a message naming it.
+
+parameters (NAME = DEFAULT):
+{parameters}"""
+
+
+def usage() -> str:
+    """``vbrl_node --help``: every parameter with its default and what it means."""
+    entries = []
+    for name, default in NodeSettings.defaults().items():
+        entries.append(f"  {name} = {yaml_value(default)}")
+        entries += textwrap.wrap(DESCRIPTIONS[name], 78, initial_indent=" " * 6, subsequent_indent=" " * 6)
+    return USAGE.format(parameters="\n".join(entries))
+
+
+def params_file_problem(argv: list[str]) -> str | None:
+    """What is wrong with a ``--params-file`` of the ROS arguments, in one line, or None.
+
+    rcl reports a missing file as an RCLError traceback that names neither the
+    directory a relative path was looked up in nor where the shipped file is.
+    """
+    in_ros_args = False
+    for k, arg in enumerate(argv):
+        if arg == "--ros-args":
+            in_ros_args = True
+        elif arg == "--":
+            in_ros_args = False
+        elif in_ros_args and arg == "--params-file":
+            if k + 1 >= len(argv) or argv[k + 1].startswith("-"):
+                return "--params-file needs a file name"
+            path = Path(argv[k + 1])
+            if path.is_file():
+                continue
+            where = "" if path.is_absolute() else f" (relative to the current directory {os.getcwd()})"
+            problem = "is not a file" if path.exists() else "does not exist"
+            shipped = shipped_parameter_file()
+            hint = f"; the package's own is {shipped}" if shipped is not None else ""
+            return f"--params-file {path} {problem}{where}{hint}"
+    return None
+
+
+def shipped_parameter_file() -> Path | None:
+    """config/vbrl.yaml of the installed package (colcon share directory) or of this checkout."""
+    candidates = [Path(__file__).resolve().parents[2] / "config" / "vbrl.yaml"]
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        candidates.insert(0, Path(get_package_share_directory("vbrl_ros")) / "config" / "vbrl.yaml")
+    except Exception:  # not installed with colcon, or no ament_index: the checkout's copy
+        pass
+    return next((path for path in candidates if path.is_file()), None)
+
+
+def rcl_error_line(error: Exception) -> str:
+    """rcl's message without its C source locations (", at /project/src/parser.c:271")."""
+    text = " ".join(str(error).split())
+    return re.sub(r",? at \S+\.c:\d+", "", text)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv if argv is None else argv)
     user_args = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
     if "-h" in user_args or "--help" in user_args:
-        parameters = "\n".join(f"  {k}: {v!r}" for k, v in NodeSettings.defaults().items())
-        print(USAGE.format(parameters=parameters))
+        print(usage())
         return 0
-    rclpy.init(args=argv)
+    problem = params_file_problem(argv)
+    if problem is not None:
+        print(f"vbrl_node: cannot start: {problem}", file=sys.stderr)
+        return 2
+    try:
+        rclpy.init(args=argv)
+    except RuntimeError as error:  # rcl's RCLError, e.g. a parameter file that is not valid YAML
+        print(f"vbrl_node: cannot start: {rcl_error_line(error)}", file=sys.stderr)
+        return 2
     node = None
     try:
         node = VbrlNode()
