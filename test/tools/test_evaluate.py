@@ -173,3 +173,21 @@ def test_bad_inputs_exit_2_with_one_line(trained, tmp_path, monkeypatch, capsys)
     assert len(errors) == 4
     assert "missing.npz" in errors[0] and "another configuration" in errors[1]
     assert "4x4" in errors[2] and "--against" in errors[3]
+
+
+@pytest.mark.parametrize("missing", ["query", "--against", "--model"])
+def test_a_missing_path_fails_before_any_source_is_described(missing, tmp_path, monkeypatch, capsys):
+    import vbrl_ros.evaluation.methods as methods
+
+    def describe_source(*args, **kwargs):
+        raise AssertionError("described a source before checking the paths")
+
+    monkeypatch.setattr(methods, "describe_source", describe_source)
+    source, absent = tmp_path / "source", tmp_path / "nonexistent"
+    source.mkdir()
+    argv = {"query": [absent, "--against", source], "--against": [source, "--against", absent],
+            "--model": [source, "--model", absent]}[missing]
+    assert vbrl(monkeypatch, "eval", *argv, "--quiet") == 2
+    error = capsys.readouterr().err.strip()
+    assert "\n" not in error and f"{absent} does not exist" in error
+    assert error.startswith("vbrl eval: error: " + ("QUERY_SOURCE" if missing == "query" else missing))
