@@ -1,4 +1,6 @@
+import argparse
 import json
+import re
 import subprocess
 import sys
 
@@ -22,6 +24,26 @@ def test_each_subcommand_documents_itself(command, capsys):
         build_parser().parse_args([command, "--help"])
     assert exit_info.value.code == 0
     assert "usage: vbrl " + command in capsys.readouterr().out
+
+
+def _subcommand_parsers() -> dict[str, argparse.ArgumentParser]:
+    parser = build_parser()
+    subparsers = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return {"vbrl": parser, **subparsers.choices}
+
+
+# reST a user should never read: ``literal``, :role:`target`, `link`_
+MARKUP = re.compile(r"``|:[a-z]+:`|`[^`]+`_")
+
+
+@pytest.mark.parametrize("command", list(_subcommand_parsers()))
+def test_help_is_plain_text_and_every_argument_has_some(command):
+    parser = _subcommand_parsers()[command]
+    text = parser.format_help()
+    assert not MARKUP.search(text), MARKUP.search(text).group(0)
+    assert "(default: None)" not in text and "(default: False)" not in text
+    for action in parser._actions:
+        assert action.help, f"vbrl {command}: {action.option_strings or action.dest} has no help"
 
 
 def test_user_errors_are_one_line_and_exit_2(tmp_path, capsys):

@@ -77,5 +77,16 @@ def test_refuses_to_overwrite_and_rejects_bad_values(tmp_path):
 
 
 def test_list_scenarios_needs_no_output(capsys):
-    assert _run(["--list-scenarios"]) == 0
+    with pytest.raises(SystemExit) as exit_info:
+        _parser().parse_args(["simulate", "--list-scenarios"])
+    assert exit_info.value.code == 0
     assert "autumn_fog" in capsys.readouterr().out
+
+
+def test_the_output_is_required_and_shown_so(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        _parser().parse_args(["simulate", "--format", "kitti"])
+    assert exit_info.value.code == 2
+    assert "required: output" in capsys.readouterr().err
+    usage = _parser()._subparsers._group_actions[0].choices["simulate"].format_usage()
+    assert " output" in usage and "[output]" not in usage

@@ -20,12 +20,13 @@ import json
 from pathlib import Path
 
 from vbrl_ros.bench import speed_targets
+from vbrl_ros.tools.options import plain_text
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "bench", help="measure the speed targets and print a table",
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--repeats", type=int, default=30, help="timed runs per figure (default 30)")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the figures as JSON")

@@ -29,7 +29,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="vbrl",
         description="VBRL LiDAR place recognition: simulate, train, evaluate, replay, benchmark.",
     )
-    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True,
+                                       help="what to run; vbrl COMMAND --help tells more")
     for module_name in SUBCOMMANDS:
         importlib.import_module(module_name).register(subparsers)
     return parser

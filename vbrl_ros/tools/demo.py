@@ -19,6 +19,7 @@ from pathlib import Path
 
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
+from vbrl_ros.tools.options import plain_text
 from vbrl_ros.training.builtin_model import SimulatedTrainingSpec, build_default_model, simulated_training_data
 from vbrl_ros.training.fit import fit_model
 from vbrl_ros.training.report import importance_report
@@ -36,7 +37,7 @@ SPACING_M = 2.0
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "demo", help="run the main job on built-in simulated data",
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--out-dir", type=Path, default=Path("runs/demo"),
                         help="where bags, model, database and results go (default runs/demo)")

@@ -53,7 +53,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "Scan Context. Prints a table, writes JSON metrics, a PR-curve PNG and "
                     "optionally the per-query matches.",
     )
-    parser.add_argument("query", type=Path, metavar="QUERY_SOURCE")
+    parser.add_argument("query", type=Path, metavar="QUERY_SOURCE",
+                        help="recording whose keyframes are the queries (bag or KITTI-style folder); "
+                             "alone, also the database (P1)")
     parser.add_argument("--against", type=Path, metavar="DATABASE_SOURCE",
                         help="P2: database session (queries come from QUERY_SOURCE)")
     parser.add_argument("--model", type=Path, default=None, metavar="MODEL.npz",

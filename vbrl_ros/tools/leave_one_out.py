@@ -26,7 +26,14 @@ EXCLUDE = 50
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "loo", help="leave-one-recording-out: train on the others (+ simulated towns), test on each",
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=(
+            "Leave-one-recording-out, the honest test of a place recogniser. For each recording in "
+            "FOLDER (any source vbrl train reads: KITTI-style folders, bags), train the built-in "
+            "model's recipe on the simulated towns plus every other recording, and evaluate P1 on "
+            "the one left out, Scan Context beside it in the same run. Prints one table; --json "
+            "writes it. A recording without revisits counts the false positives among accepted "
+            "closures at the model's own distance threshold."
+        ),
     )
     parser.add_argument("folder", type=Path, metavar="FOLDER",
                         help="a folder whose entries are recordings (KITTI-style folders or bags)")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 
 
 def add_keyframe_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,3 +34,30 @@ def float_list(text: str) -> tuple[float, ...]:
     if not values or any(v < 0 or v != v for v in values):
         raise argparse.ArgumentTypeError(f"expected non-negative numbers, got {text!r}")
     return values
+
+
+def plain_text(docstring: str | None) -> str:
+    """A module docstring as a help text: reST markup out (``x`` -> x, :func:`~a.b.f` -> f).
+
+    The docstrings are written for the API docs; argparse prints them verbatim.
+    """
+    text = re.sub(r":[a-z]+:`(~?)([^`]*)`",
+                  lambda m: m.group(2).rsplit(".", 1)[-1] if m.group(1) else m.group(2), docstring or "")
+    return text.replace("``", "")
+
+
+class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Appends "(default: X)" only where there is a default worth reading.
+
+    argparse's own prints "(default: None)" for every option without one and
+    "(default: False)" for every flag, and lists as Python reprs.
+    """
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        default, help_text = action.default, action.help or ""
+        if (default is None or default is False or default is argparse.SUPPRESS
+                or isinstance(action, argparse._StoreTrueAction) or "default" in help_text):
+            return action.help
+        if isinstance(default, (list, tuple)):
+            return f"{help_text} (default: {' '.join(map(str, default))})"
+        return f"{help_text} (default: {default})"

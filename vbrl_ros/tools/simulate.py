@@ -20,6 +20,7 @@ from vbrl_ros.simulator.route import RouteConfig, make_route, mount_rotation
 from vbrl_ros.simulator.run import SimulatedRun, simulate_run
 from vbrl_ros.simulator.scenarios import FOLIAGE_DENSITY, SCENARIO_PRESETS, WEATHER, Scenario
 from vbrl_ros.simulator.town import TownConfig, generate_town
+from vbrl_ros.tools.options import DefaultsHelpFormatter
 
 FORMATS = ("mcap", "sqlite3", "ros1", "kitti")
 
@@ -41,15 +42,15 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
         epilog=(f"scenario presets: {presets}; or any <season>_<weather> with season in "
                 f"{', '.join(FOLIAGE_DENSITY)} and weather in {', '.join(WEATHER)}. "
                 "Same town seed, run seed and scenario give bit-identical scans."),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=DefaultsHelpFormatter,
     )
-    parser.add_argument("output", type=Path, nargs="?", help="output directory (created if missing)")
+    parser.add_argument("output", type=Path, help="output directory (created if missing)")
     parser.add_argument("--format", choices=FORMATS, default="mcap", help="output format")
     parser.add_argument("--scenario", nargs="+", default=["summer_clear"], metavar="NAME",
                         help="scenario(s); one output each")
     parser.add_argument("--seed", nargs="+", type=int, default=[1], metavar="N",
                         help="run seed(s): traffic, parked cars, noise; one output per scenario and seed")
-    parser.add_argument("--list-scenarios", action="store_true", help="print the presets and exit")
+    parser.add_argument("--list-scenarios", action=ListScenarios, help="print the presets and exit")
 
     town = parser.add_argument_group("town")
     town.add_argument("--town-seed", type=int, default=0, help="seed of the town layout")
@@ -98,6 +99,21 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     return parser
 
 
+class ListScenarios(argparse.Action):
+    """--list-scenarios prints the presets and exits while parsing, as --help does, so the
+    output directory can stay a required argument (and say so in the usage)."""
+
+    def __init__(self, option_strings: list[str], dest: str, **kwargs) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
+        for name, scenario in SCENARIO_PRESETS.items():
+            print(f"{name:14s} season={scenario.season:7s} weather={scenario.weather:6s} "
+                  f"cars/km={scenario.moving_cars_per_km:g} pedestrians/km={scenario.pedestrians_per_km:g} "
+                  f"parked_turnover={scenario.parked_turnover:g}")
+        parser.exit()
+
+
 def _output_path(folder: Path, name: str, fmt: str) -> Path:
     # ROS 2 bags are directories (a ".mcap" suffix would make readers take it for a file).
     return folder / (f"{name}.bag" if fmt == "ros1" else name)
@@ -130,14 +146,6 @@ def _describe(run: SimulatedRun, town_config: TownConfig, route_config: RouteCon
 
 def run(args: argparse.Namespace) -> int:
     """Execute ``vbrl simulate``; returns the exit code. Bad parameters raise ValueError."""
-    if args.list_scenarios:
-        for name, scenario in SCENARIO_PRESETS.items():
-            print(f"{name:14s} season={scenario.season:7s} weather={scenario.weather:6s} "
-                  f"cars/km={scenario.moving_cars_per_km:g} pedestrians/km={scenario.pedestrians_per_km:g} "
-                  f"parked_turnover={scenario.parked_turnover:g}")
-        return 0
-    if args.output is None:
-        raise ValueError("the output directory is required (unless --list-scenarios)")
     scenarios = [Scenario.from_name(name) for name in args.scenario]
     if len({s.name for s in scenarios}) != len(scenarios) or len(set(args.seed)) != len(args.seed):
         raise ValueError("--scenario and --seed values must not repeat (outputs would collide)")

@@ -43,8 +43,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "otherwise), solve the structured-sparsity objective and write a model file, "
                     "its three ablations and figures of what it learned next to it.",
     )
-    parser.add_argument("sources", nargs="+", type=Path, metavar="SOURCE")
-    parser.add_argument("--out", type=Path, required=True, metavar="MODEL.npz")
+    parser.add_argument("sources", nargs="+", type=Path, metavar="SOURCE",
+                        help="recordings to learn from: ROS 1/2 bags or KITTI-style folders; each is "
+                             "one scenario unless --labels says otherwise")
+    parser.add_argument("--out", type=Path, required=True, metavar="MODEL.npz",
+                        help="model file to write; the ablations and figures go next to it")
     parser.add_argument("--labels", help="comma-separated scenario label per SOURCE")
     parser.add_argument("--targets", choices=TARGETS, default="scenarios",
                         help="what Y labels: the scenario of each source (the paper's, default); "
