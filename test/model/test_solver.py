@@ -86,6 +86,17 @@ def test_objective_decreases_monotonically(lam, n, kw):
     assert objective(r.W, Y, g, *lam, X=X) <= r.objective_history[-1] * (1 + 1e-12)
 
 
+@pytest.mark.parametrize("path", ["woodbury", "gram"])
+def test_on_iteration_reports_every_step_with_its_objective(path):
+    X, Y, g = make_problem(25, informative=[0, 2])
+    calls = []
+    r = solve_vbrl(X, Y, g, 10.0, 0.1, path=path, on_iteration=lambda it, f: calls.append((it, f)))
+    assert [it for it, _ in calls] == list(range(1, r.iterations + 1))
+    assert [f for _, f in calls] == r.objective_history[1:]
+    limited = solve_vbrl(X, Y, g, 10.0, 0.1, path=path, max_iter=2, tol=1e-14)
+    assert not limited.converged and limited.iterations == 2
+
+
 @settings(max_examples=15, deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(5, 60), l1=st.floats(0, 50), l2=st.floats(0, 5))
 def test_objective_decreases_monotonically_random(seed, n, l1, l2):

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Literal, Optional
+from typing import Callable, Literal, Optional
 
 import numpy as np
 import scipy.linalg as sla
@@ -231,7 +231,8 @@ def solve_vbrl(X: Optional[np.ndarray] = None, Y: Optional[np.ndarray] = None,
                groups: Optional[RowGroups] = None, lambda1: float = 10.0, lambda2: float = 0.1, *,
                gram=None, tol: float = 1e-6, max_iter: int = 100, eps: Optional[float] = None,
                path: Path = "auto", linear_solver: str = "auto", cg_rtol: float = 1e-10,
-               cg_maxiter: int = 30) -> SolverResult:
+               cg_maxiter: int = 30,
+               on_iteration: Optional[Callable[[int, float], None]] = None) -> SolverResult:
     """Minimise Eq. 3 by Algorithm 1 (IRLS), stopping when the relative decrease of f is < tol.
 
     path="auto": λ1 = λ2 = 0 → "least-squares" (min-norm W = (Xᵀ)⁺Y, or G⁺B from gram);
@@ -241,6 +242,8 @@ def solve_vbrl(X: Optional[np.ndarray] = None, Y: Optional[np.ndarray] = None,
     ``linear_solver`` ("auto" | "cholesky" | "pcg", Gram path only): "auto" = "pcg" for
     d > 2000. PCG stops at ‖r‖ ≤ cg_rtol·‖B‖ per column; if it needs more than ``cg_maxiter``
     iterations that step is redone by a fresh Cholesky.
+    ``on_iteration(iteration, f)`` is called after every IRLS step: a d×d solve can take
+    minutes, and a caller showing progress has nothing else to go by.
     """
     t0 = time.perf_counter()
     X, Y, stats = check_problem(X, Y, groups, lambda1, lambda2, gram)
@@ -277,19 +280,21 @@ def solve_vbrl(X: Optional[np.ndarray] = None, Y: Optional[np.ndarray] = None,
         kind = linear_solver if linear_solver != "auto" else ("pcg" if groups.d > 2000 else "cholesky")
         step = GramStepper(stats, kind, cg_rtol, cg_maxiter)
     W, hist, it, conv = irls(W0, lambda W: step(irls_weights(W, groups, lambda1, lambda2, eps), W),
-                              f, tol, max_iter)
+                              f, tol, max_iter, on_iteration)
     info = {"factorisations": step.factorisations, "cg_iterations": step.cg_iterations} \
         if path == "gram" else {}
     return SolverResult(W, hist, it, conv, path, eps, time.perf_counter() - t0, kind, info)
 
 
-def irls(W, step, f, tol, max_iter):
+def irls(W, step, f, tol, max_iter, on_iteration=None):
     """Shared IRLS loop. Stops when (f_prev − f)/f_prev < tol; if a step *raised* f (only
     possible at round-off level, or from the ε-smoothing) the previous W is returned."""
     hist = [f(W)]
     for it in range(1, max_iter + 1):
         W_new = step(W)
         hist.append(f(W_new))
+        if on_iteration is not None:
+            on_iteration(it, hist[-1])
         if hist[-1] <= hist[-2]:
             W = W_new
         if hist[-2] - hist[-1] <= tol * abs(hist[-2]):  # "<=": f = 0 (Y = 0) stops too
