@@ -59,6 +59,7 @@ def test_train_writes_model_ablations_and_figures(sources, tmp_path, monkeypatch
     for figure in ("modalities", "voxels", "layers"):
         assert (tmp_path / f"town.{figure}.png").read_bytes()[:4] == b"\x89PNG"
     assert "modality shares" in text and "layer shares" in text
+    assert "did not converge" not in text + capsys.readouterr().err
 
 
 def test_streamed_moments_equal_the_loaded_data(sources):
@@ -98,6 +99,24 @@ def test_cv_chooses_from_the_grid(sources, tmp_path, monkeypatch, capsys):
     assert cv["lambda1_grid"] == [0.0, 10.0] and np.shape(cv["recall_at_1"]) == (2, 1)
     assert (tmp_path / "cv.cv.png").is_file()
     assert "chosen" in capsys.readouterr().out
+
+
+def test_progress_during_the_solves_and_a_solver_that_did_not_converge(sources, tmp_path, monkeypatch,
+                                                                       capsys):
+    from vbrl_ros.tools import train
+
+    monkeypatch.setattr(train, "SOLVER_MAX_ITER", 2)  # the IRLS fits stop before converging
+    assert vbrl(monkeypatch, "train", *sources, "--out", tmp_path / "m.npz", "--every", "4",
+                "--workers", "1") == 0
+    captured = capsys.readouterr()
+    for bar in ("solving W", "ablations", "solving voxel-only", "objective="):
+        assert bar in captured.err, bar
+    warnings = [line for line in captured.err.splitlines() if "did not converge" in line]
+    # the model and the two iterative ablations; concatenation is a least-squares solve
+    assert [line.split(" for ")[1].split(":")[0] for line in warnings] == [
+        "the model", "ablation voxel-only", "ablation modality-only"]
+    assert all(line.startswith("warning: ") and "stopped at 2 iterations" in line for line in warnings)
+    assert "2 iterations (did not converge)" in captured.out
 
 
 def test_bad_inputs_exit_2(sources, tmp_path, monkeypatch, capsys):

@@ -16,9 +16,13 @@ descriptors are never held: :mod:`.streaming`.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+
+from tqdm import tqdm
 
 from vbrl_ros.config import GRID_KINDS, VBRLConfig, VoxelGridConfig
 from vbrl_ros.features.featurizer import Featurizer
@@ -114,9 +118,43 @@ def _should_stream(args: argparse.Namespace, d: int) -> tuple[bool, int | None]:
     return n * d * 4 > args.max_memory_gb * 1e9, n
 
 
+#: IRLS iterations the solver may take (its stopping rule usually ends it far sooner).
+SOLVER_MAX_ITER = 100
+
+OnIteration = Callable[[int, float], None]
+
+
 def _summary(result: TrainingResult) -> str:
-    return (f"solver {result.solver.path}, {result.solver.iterations} iterations, "
+    converged = "" if result.solver.converged else " (did not converge)"
+    return (f"solver {result.solver.path}, {result.solver.iterations} iterations{converged}, "
             f"{result.seconds:.1f} s")
+
+
+@contextmanager
+def solver_progress(description: str, quiet: bool) -> Iterator[OnIteration | None]:
+    """A bar over the solver's iterations, with the objective: a large solve takes minutes."""
+    if quiet:
+        yield None
+        return
+    with tqdm(total=SOLVER_MAX_ITER, desc=description, unit="it", leave=False) as bar:
+        def on_iteration(iteration: int, objective: float) -> None:
+            # redrawn every iteration: an iteration is a d x d or n x n solve, never too quick
+            bar.update(iteration - bar.n)
+            bar.set_postfix(objective=f"{objective:.6g}")
+
+        yield on_iteration
+
+
+def warn_if_not_converged(result: TrainingResult, what: str) -> None:
+    """Say so when the solver stopped at its iteration limit: W is then not the optimum."""
+    solver = result.solver
+    if solver.converged:
+        return
+    history = solver.objective_history
+    decrease = (history[-2] - history[-1]) / abs(history[-2]) if len(history) > 1 and history[-2] else 0.0
+    tqdm.write(f"warning: the solver did not converge for {what}: it stopped at {solver.iterations} "
+               f"iterations with the objective still falling by {decrease:.2g} of itself per "
+               "iteration; W is the best iterate so far, not the optimum", file=sys.stderr)
 
 
 def grid_config(args: argparse.Namespace) -> VBRLConfig:
@@ -138,7 +176,7 @@ def grid_config(args: argparse.Namespace) -> VBRLConfig:
 class LoadedTraining:
     """The loaded training set and how to fit W on it, in memory or from streamed moments."""
 
-    fit: Callable[[float, float, dict], TrainingResult]  # (λ1, λ2, metadata) -> result
+    fit: Callable[[float, float, dict, OnIteration | None], TrainingResult]  # (λ1, λ2, metadata, progress)
     keyframes: int
     scenario_names: list[str]
     lambdas: tuple[float, float]  # the given pair, or the one cross-validation chose
@@ -151,11 +189,13 @@ def run(args: argparse.Namespace) -> int:
     config = grid_config(args)
     names = source_labels(args.sources, args.labels.split(",") if args.labels else None)
     training = load(args, config, names)
-    result = training.fit(*training.lambdas, dict(training.metadata))
+    with solver_progress("solving W", args.quiet) as on_iteration:
+        result = training.fit(*training.lambdas, dict(training.metadata), on_iteration)
+    warn_if_not_converged(result, "the model")
     calibrate_threshold(args, result.model, training.data)
     path = save_model(args, result, training)
     if args.ablations:
-        save_ablations(path, training)
+        save_ablations(path, training, args.quiet)
     return 0
 
 
@@ -194,9 +234,10 @@ def load_streamed(args: argparse.Namespace, config: VBRLConfig, names: list[str]
     )
     standardized = moments.standardized(Featurizer(config).layout.tie_of_row)
 
-    def fit(l1: float, l2: float, meta: dict) -> TrainingResult:
+    def fit(l1: float, l2: float, meta: dict, on_iteration: OnIteration | None = None) -> TrainingResult:
         return streaming.fit_from_moments(moments, info.scenario_names, config, l1, l2,
-                                          metadata=meta, standardized=standardized)
+                                          metadata=meta, standardized=standardized,
+                                          max_iter=SOLVER_MAX_ITER, on_iteration=on_iteration)
 
     return LoadedTraining(fit, moments.n, info.scenario_names, (args.lambda1, args.lambda2), metadata)
 
@@ -220,12 +261,12 @@ def load_in_memory(args: argparse.Namespace, config: VBRLConfig, names: list[str
     if args.descriptor == "recognition":
         metadata["translation_search"] = RECOGNITION_TRANSLATION_SEARCH_M
 
-    def fit(l1: float, l2: float, meta: dict) -> TrainingResult:
+    def fit(l1: float, l2: float, meta: dict, on_iteration: OnIteration | None = None) -> TrainingResult:
+        solver = dict(lambda1=l1, lambda2=l2, metadata=meta, max_iter=SOLVER_MAX_ITER,
+                      on_iteration=on_iteration)
         if args.targets == "pairs":
-            return fit_pairs(data.descriptors, data.positions, data.source_of_row, config,
-                             lambda1=l1, lambda2=l2, metadata=meta)
-        return fit_model(data.descriptors, targets, target_names, config,
-                         lambda1=l1, lambda2=l2, metadata=meta)
+            return fit_pairs(data.descriptors, data.positions, data.source_of_row, config, **solver)
+        return fit_model(data.descriptors, targets, target_names, config, **solver)
 
     return LoadedTraining(fit, len(data.descriptors), data.scenario_names, lambdas, metadata, data)
 
@@ -282,10 +323,16 @@ def save_model(args: argparse.Namespace, result: TrainingResult, training: Loade
     return path
 
 
-def save_ablations(path: Path, training: LoadedTraining) -> None:
-    """The paper's three ablations, fitted on the same data, next to the model."""
-    for name in ABLATIONS:
+def save_ablations(path: Path, training: LoadedTraining, quiet: bool = False) -> None:
+    """The paper's three ablations, fitted on the same data, next to the model.
+
+    Three more solves of the model's size: a bar over them, and one over each solve.
+    """
+    for name in tqdm(ABLATIONS, desc="ablations", unit="fit", disable=quiet):
         l1, l2 = ablation_lambdas(name, *training.lambdas)
-        ablation = training.fit(l1, l2, {**training.metadata, "ablation": name, "full_model": path.name})
+        with solver_progress(f"solving {name}", quiet) as on_iteration:
+            ablation = training.fit(l1, l2, {**training.metadata, "ablation": name,
+                                             "full_model": path.name}, on_iteration)
         out = ablation.model.save(ablation_path(path, name))
-        print(f"ablation {name:<14s} (λ1 = {l1:g}, λ2 = {l2:g}): {_summary(ablation)} -> {out}")
+        tqdm.write(f"ablation {name:<14s} (λ1 = {l1:g}, λ2 = {l2:g}): {_summary(ablation)} -> {out}")
+        warn_if_not_converged(ablation, f"ablation {name}")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -96,8 +96,11 @@ def fit_pairs(
     tol: float = 1e-6,
     max_iter: int = 100,
     metadata: dict[str, Any] | None = None,
+    on_iteration: Callable[[int, float], None] | None = None,
 ) -> TrainingResult:
-    """Standardise, solve Eq. 3 on same/different-place pairs (:mod:`.pair_targets`), build the model."""
+    """Standardise, solve Eq. 3 on same/different-place pairs (:mod:`.pair_targets`), build the model.
+
+    ``on_iteration`` goes to :func:`~vbrl_ros.model.solver.solve_vbrl` (progress)."""
     layout = Featurizer(config).layout
     descriptors = _checked_descriptors(descriptors, layout)
     start = time.perf_counter()
@@ -105,7 +108,7 @@ def fit_pairs(
     pairs = pair_targets((descriptors - mean) / scale, np.asarray(positions, np.float64),
                          np.asarray(source_of_row), layout)
     result = solve_vbrl(pairs.X.T, pairs.Y, row_groups(layout), lambda1=lambda1, lambda2=lambda2,
-                        tol=tol, max_iter=max_iter)
+                        tol=tol, max_iter=max_iter, on_iteration=on_iteration)
     seconds = time.perf_counter() - start
     info = {"scans": int(len(descriptors)), "targets": "pairs",
             "pairs": {"same_place": pairs.n_same, "different_place": pairs.n_different},
@@ -149,10 +152,12 @@ def fit_model(
     tol: float = 1e-6,
     max_iter: int = 100,
     metadata: dict[str, Any] | None = None,
+    on_iteration: Callable[[int, float], None] | None = None,
 ) -> TrainingResult:
     """Standardise (n, d) raw descriptors, solve Eq. 3 against one-hot scenarios, build the model.
 
-    The solver picks its path (Woodbury for n < d, Gram matrix otherwise).
+    The solver picks its path (Woodbury for n < d, Gram matrix otherwise); ``on_iteration``
+    goes to :func:`~vbrl_ros.model.solver.solve_vbrl` (progress).
     """
     config = config or VBRLConfig()
     layout = Featurizer(config).layout
@@ -165,7 +170,8 @@ def fit_model(
     mean, scale = standardization(descriptors, layout.tie_of_row)
     X = ((descriptors - mean) / scale).T  # (d, n), one column per scan as in the paper
     groups = row_groups(layout)
-    result = solve_vbrl(X, Y, groups, lambda1=lambda1, lambda2=lambda2, tol=tol, max_iter=max_iter)
+    result = solve_vbrl(X, Y, groups, lambda1=lambda1, lambda2=lambda2, tol=tol, max_iter=max_iter,
+                        on_iteration=on_iteration)
     seconds = time.perf_counter() - start
     info = {
         "scans": int(len(descriptors)),

@@ -31,7 +31,7 @@ pooled per class (:func:`~vbrl_ros.training.fit.pool_tied`), so μ ≠ m = s/n a
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -119,10 +119,12 @@ def fit_from_moments(
     max_iter: int = 100,
     metadata: dict[str, Any] | None = None,
     standardized: tuple[GramStats, np.ndarray, np.ndarray] | None = None,
+    on_iteration: Callable[[int, float], None] | None = None,
 ) -> TrainingResult:
     """Solve Eq. 3 on the Gram path from streamed moments and build the model.
 
-    ``standardized`` lets several (λ1, λ2) share one standardisation.
+    ``standardized`` lets several (λ1, λ2) share one standardisation; ``on_iteration``
+    goes to :func:`~vbrl_ros.model.solver.solve_vbrl` (progress).
     """
     start = time.perf_counter()
     layout = Featurizer(config).layout
@@ -130,7 +132,7 @@ def fit_from_moments(
     if stats.G.shape[0] != layout.dimension:
         raise ValueError(f"moments have d={stats.G.shape[0]}, the configuration needs {layout.dimension}")
     result = solve_vbrl(groups=row_groups(layout), gram=stats, lambda1=lambda1, lambda2=lambda2, tol=tol,
-                        max_iter=max_iter)
+                        max_iter=max_iter, on_iteration=on_iteration)
     seconds = time.perf_counter() - start
     info = {
         "scans": int(moments.n),
