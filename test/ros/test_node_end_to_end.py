@@ -37,17 +37,23 @@ def bags(tmp_path_factory):
     )
 
 
-def session(bag, database):
+def session(bag, database, progress=False):
     with ros_context() as context:
         env = isolated_ros_env(context.get_domain_id())
-        return run_node_session(bag.path, database, env, context, rate=2.0, node_params=NODE_PARAMS)
+        return run_node_session(bag.path, database, env, context, rate=2.0, node_params=NODE_PARAMS,
+                                progress=progress, scans=len(bag.positions))
 
 
-def test_loop_closures_within_and_across_sessions(bags, tmp_path):
+def test_loop_closures_within_and_across_sessions(bags, tmp_path, capsys):
     database = tmp_path / "keyframes.npz"
     summer, winter = bags["summer_clear"], bags["winter_snow"]
 
-    first = session(summer, database)
+    first = session(summer, database, progress=True)
+    # vbrl demo's progress: the bar over the scans the node took in, with its keyframes and closures
+    bar = capsys.readouterr().err
+    scans = len(summer.positions)
+    assert f"replaying {summer.path.name}" in bar and f"{scans}/{scans}" in bar, bar[-500:]
+    assert f"closures={len(first.closures)}" in bar
     print("session 0:", first.stats)
     assert first.returncode == 0, first.node_output
     assert database.is_file(), first.node_output

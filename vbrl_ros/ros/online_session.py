@@ -69,9 +69,15 @@ def simulate_session_bags(
 
 def run_node_session(
     bag: Path, database: Path, env: dict[str, str], context, *, rate: float = 2.0,
-    node_params: tuple[str, ...] = (), timeout: float = 600.0,
+    node_params: tuple[str, ...] = (), timeout: float = 600.0, progress: bool = False,
+    scans: int | None = None,
 ) -> SessionResult:
-    """Start vbrl_node, replay ``bag`` into it, wait until it is idle, stop it with SIGINT."""
+    """Start vbrl_node, replay ``bag`` into it, wait until it is idle, stop it with SIGINT.
+
+    ``progress``: a bar over the ``scans`` clouds of the bag as the node reports receiving
+    them, with its keyframes and closures so far; a replay takes minutes, and what the
+    node has taken in is what matters, not what the player has sent.
+    """
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import Float64MultiArray
@@ -96,12 +102,13 @@ def run_node_session(
              "--wait-for-subscribers", "1", "--wait-topics", "/points", "/odom"],
             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         )
-        # keep spinning while the replay runs, so the probe's queues stay current
-        collector.spin_until(lambda: player.poll() is not None, timeout=timeout)
-        replay_output, _ = player.communicate(timeout=30)
-        if player.returncode != 0:
-            raise RuntimeError(f"replay failed: {replay_output}")
-        stats = _wait_until_idle(collector)
+        with SessionProgress(collector, bag.name, scans, progress) as bar:
+            # keep spinning while the replay runs, so the probe's queues stay current
+            collector.spin_until(lambda: bar.update() or player.poll() is not None, timeout=timeout)
+            replay_output, _ = player.communicate(timeout=30)
+            if player.returncode != 0:
+                raise RuntimeError(f"replay failed: {replay_output}")
+            stats = _wait_until_idle(collector, on_spin=bar.update)
     finally:
         node.send_signal(signal.SIGINT)
         output, _ = node.communicate(timeout=120)
@@ -112,11 +119,44 @@ def run_node_session(
     return SessionResult(closures, stats, markers, output, node.returncode)
 
 
-def _wait_until_idle(collector, timeout: float = 120.0) -> dict[str, str]:
+class SessionProgress:
+    """A tqdm bar over the scans the node has received (from its diagnostics), or nothing."""
+
+    def __init__(self, collector, name: str, scans: int | None, enabled: bool) -> None:
+        self.collector, self.name, self.scans, self.enabled = collector, name, scans, enabled
+        self._seen = (0, 0)  # (diagnostics, closure messages) already shown
+
+    def __enter__(self) -> SessionProgress:
+        if self.enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.scans, desc=f"replaying {self.name}", unit="scan",
+                            dynamic_ncols=True)
+        return self
+
+    def update(self) -> None:
+        """Show the latest diagnostics (cheap when nothing new came: called on every spin)."""
+        messages = self.collector.messages
+        seen = (len(messages["/diagnostics"]), len(messages[CLOSURE_TOPIC]))
+        if not self.enabled or seen == self._seen or not seen[0]:
+            return
+        self._seen = seen
+        values = {kv.key: kv.value for kv in messages["/diagnostics"][-1].status[0].values}
+        received = int(float(values.get("scans_received", 0)))
+        self.bar.update(received - self.bar.n)
+        self.bar.set_postfix(keyframes=values.get("keyframes_processed", "?"),
+                             closures=len(messages[CLOSURE_TOPIC]))
+
+    def __exit__(self, *exc: object) -> None:
+        if self.enabled:
+            self.bar.close()
+
+
+def _wait_until_idle(collector, timeout: float = 120.0, on_spin=lambda: None) -> dict[str, str]:
     """Diagnostics once the node's processed-keyframe count stops moving."""
     previous, deadline = None, time.monotonic() + timeout
     while time.monotonic() < deadline:
-        collector.spin_until(lambda: False, 1.2)  # drain: > 2 diagnostics periods
+        collector.spin_until(lambda: on_spin() or False, 1.2)  # drain: > 2 diagnostics periods
         last = collector.messages["/diagnostics"][-1].status[0]
         current = {kv.key: kv.value for kv in last.values}
         if previous is not None and current["keyframes_processed"] == previous["keyframes_processed"]:

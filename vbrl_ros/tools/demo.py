@@ -101,7 +101,8 @@ def run(args: argparse.Namespace) -> int:
               + (" after a restart on the saved database" if step else ""))
         with ros_context() as context:
             result = run_node_session(bag.path, database, isolated_ros_env(context.get_domain_id()),
-                                      context, rate=args.rate, node_params=params)
+                                      context, rate=args.rate, node_params=params, progress=progress,
+                                      scans=len(bag.positions))
         if result.returncode != 0:
             raise RuntimeError(f"vbrl_node failed:\n{result.node_output}")
         positions = {**seen, **bag.positions}
