@@ -356,11 +356,14 @@ def report(args: argparse.Namespace, evaluation: Evaluation,
 def write_metrics(args: argparse.Namespace, evaluation: Evaluation,
                   metrics: dict[str, dict[float, RetrievalMetrics]],
                   agreement: dict[str, Any] | None) -> Path:
+    from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
+
     protocol, alignment = evaluation.protocol, evaluation.alignment
     report = {
         "protocol": protocol, "query_source": str(args.query),
         "database_source": None if args.against is None else str(args.against),
-        "model": str(args.model), "radius": float(args.radius), "radii": evaluation.radii,
+        "model": str(args.model or DEFAULT_MODEL_PATH),  # the built-in one without --model
+        "radius": float(args.radius), "radii": evaluation.radii,
         "exclude": args.exclude if protocol == "P1" else None,
         "align": None if alignment is None else alignment.tolist(),
         "num_query_keyframes": len(evaluation.queries),
