@@ -66,14 +66,15 @@ def test_the_trained_model_is_the_recognition_descriptor_with_translation_search
     assert model.metadata["targets"].startswith("places")
 
 
-def test_eval_on_the_training_source_says_it_is_in_sample(sources, places_model, capsys):
+def test_eval_on_the_training_source_says_it_is_in_sample(sources, places_model, tmp_path, capsys):
     assert vbrl("eval", sources["short"], "--model", places_model, "--exclude", "5", "--no-scan-context",
-                "--no-ablations", *QUICK) == 0
+                "--no-ablations", "--out-dir", tmp_path, *QUICK) == 0
     notes = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note:")]
     assert notes == [f"note: the model was trained on {sources['short']}: these results are in-sample, not a test"]
     # another source is a test: no note
     assert vbrl("eval", sources["loops"], "--model", places_model, "--exclude", "10", "--no-scan-context",
-                "--no-ablations", *QUICK) == 0
+                "--no-ablations", "--out-dir", tmp_path, *QUICK) == 0
+    assert (tmp_path / "pr.png").is_file()
     assert "in-sample" not in capsys.readouterr().out
 
 
@@ -82,7 +83,7 @@ def test_a_missing_path_fails_fast_with_one_line_naming_it(sources, tmp_path, ca
     missing = tmp_path / "nowhere"
     argv = {"QUERY_SOURCE": [missing], "--against": [sources["short"], "--against", missing],
             "--model": [sources["short"], "--model", missing]}[which]
-    assert vbrl("eval", *argv, *QUICK) == 2
+    assert vbrl("eval", *argv, "--out-dir", tmp_path, *QUICK) == 2
     captured = capsys.readouterr()
     lines = captured.err.strip().splitlines()
     assert lines == [f"vbrl eval: error: {which} {missing} does not exist"]
