@@ -255,9 +255,18 @@ class KeyframeIndex:
 
     def refined_yaws(self, query: np.ndarray, rows: np.ndarray, distances: np.ndarray,
                      shifts: np.ndarray) -> np.ndarray:
-        """Yaws of ``shifts`` (refined by a parabola if the parameters say so), as in searches."""
-        return self._result(self.check(query), np.asarray(rows, np.int64), np.asarray(distances, np.float32),
-                            np.asarray(shifts, np.int64), len(rows)).yaws if len(rows) else np.empty(0)
+        """Yaws of each row's best ``shifts`` (refined by a parabola through the distances at the
+        neighbouring shifts if the parameters say so), in the order given, as searches give them."""
+        return self._yaws(self.check(query), np.asarray(rows, np.int64),
+                          np.asarray(distances, np.float32), np.asarray(shifts, np.int64))
+
+    def _yaws(self, q: np.ndarray, rows: np.ndarray, distances: np.ndarray,
+              shifts: np.ndarray) -> np.ndarray:
+        if not (self.parameters.yaw_refine and self.sectors >= 3 and len(rows)):
+            return yaw_of_shift(shifts, self.sectors)
+        around = np.stack([(shifts - 1) % self.sectors, (shifts + 1) % self.sectors], axis=1)
+        side = self._at_shifts(q, rows, around)
+        return refined_yaw(shifts, side[:, 0], distances, side[:, 1], self.sectors)
 
     def _candidates(self, key: np.ndarray, refine_key: np.ndarray, mask: np.ndarray | None,
                     top_k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -353,11 +362,7 @@ class KeyframeIndex:
                 shifts: np.ndarray, top_k: int = 0) -> SearchResult:
         order = np.lexsort((rows, distances))[:top_k]  # distance, then insertion order
         rows, distances, shifts = rows[order].astype(np.int64), distances[order], shifts[order]
-        yaws = yaw_of_shift(shifts, self.sectors)
-        if self.parameters.yaw_refine and self.sectors >= 3 and len(rows):
-            around = np.stack([(shifts - 1) % self.sectors, (shifts + 1) % self.sectors], axis=1)
-            side = self._at_shifts(q, rows, around)
-            yaws = refined_yaw(shifts, side[:, 0], distances, side[:, 1], self.sectors)
+        yaws = self._yaws(q, rows, distances, shifts)
         return SearchResult(rows, distances.astype(np.float64), shifts.astype(np.int64), yaws)
 
     def _mask(self, allowed: np.ndarray | Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
