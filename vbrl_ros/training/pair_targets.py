@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 from vbrl_ros.features.featurizer import FeatureLayout
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.parameters import IndexParameters
+from vbrl_ros.model.distance_kernels import min_over_shifts
 
 SAME_PLACE_M = 3.0
 DIFFERENT_PLACE_M = 20.0
@@ -48,12 +49,13 @@ def pair_targets(standardised: np.ndarray, positions: np.ndarray, source_of_row:
     rng = np.random.default_rng(seed)
     Z = np.asarray(standardised, dtype=np.float32)
     rows = layout.sector_rows  # (S, R): sector-major view of a descriptor
+    compact = np.ascontiguousarray(Z[:, rows.ravel()])  # what an index stores, unweighted
     same, different = [], []
     for source in np.unique(source_of_row):
         members = np.flatnonzero((source_of_row == source) & np.isfinite(positions).all(axis=1))
         if len(members) < 2:
             continue
-        s, d = _source_pairs(Z[members][:, rows.ravel()], positions[members], layout.sectors, rng)
+        s, d = _source_pairs(compact[members], positions[members], layout.sectors, rng)
         same.append(members[s]), different.append(members[d])
     same_pairs = np.concatenate(same) if same else np.zeros((0, 2), np.int64)
     different_pairs = np.concatenate(different) if different else np.zeros((0, 2), np.int64)
@@ -63,9 +65,9 @@ def pair_targets(standardised: np.ndarray, positions: np.ndarray, source_of_row:
                          f"and places more than {DIFFERENT_PLACE_M:g} m apart (check --poses)")
     pairs = np.concatenate([same_pairs, different_pairs])
     X = np.empty((len(pairs), Z.shape[1]), np.float64)
-    sm = Z[:, rows.ravel()].reshape(len(Z), *rows.shape)
-    for p, (a, b) in enumerate(pairs):
-        k = _best_shift(sm[a], sm[b])
+    shifts = _best_shifts(compact, pairs, layout.sectors)
+    sm = compact.reshape(len(Z), *rows.shape)
+    for p, ((a, b), k) in enumerate(zip(pairs, shifts)):
         X[p, rows.ravel()] = np.abs(np.roll(sm[a], -k, axis=0) - sm[b]).ravel()
     Y = np.zeros((len(pairs), 2))
     Y[: len(same_pairs), 0] = 1.0
@@ -73,11 +75,18 @@ def pair_targets(standardised: np.ndarray, positions: np.ndarray, source_of_row:
     return PairTargets(X, Y, len(same_pairs), len(different_pairs))
 
 
-def _best_shift(a: np.ndarray, b: np.ndarray) -> int:
-    """k minimising sum |a[(s + k) % S] - b[s]| (unweighted Eq. 4; a, b (S, R))."""
-    S = a.shape[0]
-    cost = [np.abs(np.roll(a, -k, axis=0) - b).sum() for k in range(S)]
-    return int(np.argmin(cost))
+def _best_shifts(compact: np.ndarray, pairs: np.ndarray, sectors: int) -> np.ndarray:
+    """Per pair (a, b) the shift k minimising unweighted Eq. 4, sum |a[(s + k) % S] - b[s]|:
+    the brute-force kernel the index itself uses, one call per query a."""
+    weights = np.ones(compact.shape[1] // sectors, np.float32)
+    shifts = np.empty(len(pairs), np.int64)
+    for a in np.unique(pairs[:, 0]):
+        at = np.flatnonzero(pairs[:, 0] == a)
+        rows = np.ascontiguousarray(pairs[at, 1], dtype=np.int64)
+        distance, shift = np.empty(len(rows), np.float32), np.empty(len(rows), np.int64)
+        min_over_shifts(compact, rows, compact[a], weights, sectors, distance, shift)
+        shifts[at] = shift
+    return shifts
 
 
 def _source_pairs(compact: np.ndarray, positions: np.ndarray, sectors: int,
