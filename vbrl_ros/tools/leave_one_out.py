@@ -62,19 +62,26 @@ def recordings_in(folder: Path) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
+    from vbrl_ros.evaluation.methods import describe_source
     from vbrl_ros.training.builtin_model import (
         BUILTIN_TOWNS,
         fit_recognition_model,
-        recording_parts,
         simulated_recognition_data,
     )
-    from vbrl_ros.training.presets import recognition_config
+    from vbrl_ros.training.presets import RECOGNITION_TRANSLATION_SEARCH_M, recognition_config
 
     recordings = recordings_in(args.folder)
     progress = not args.quiet
     config = recognition_config()
     towns = simulated_recognition_data(BUILTIN_TOWNS, config, progress)
-    parts = recording_parts(tuple(recordings), config, progress)
+    # each recording is described once: its first view is what training reads
+    sources = [describe_source(path, config, ScanContextConfig(), progress=progress,
+                               translation_search=RECOGNITION_TRANSLATION_SEARCH_M) for path in recordings]
+    for path, source in zip(recordings, sources):
+        if source.positions is None or not np.isfinite(source.positions).all():
+            raise ValueError(f"{path}: every scan needs a pose for the ground truth")
+    parts = [(path.name, source.vbrl, source.positions) for path, source in zip(recordings, sources)]
     args.out_dir.mkdir(parents=True, exist_ok=True)
     rows = []
     for k, held in enumerate(recordings):
@@ -83,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
                                                        if j != k]).model
         path = model.save(args.out_dir / f"without_{held.name}.npz")
         print(f"[{k + 1}/{len(recordings)}] {held.name}: model trained without it -> {path}")
-        rows.append({"recording": held.name, **evaluate(held, model, progress)})
+        rows.append({"recording": held.name, **evaluate(sources[k], model, progress)})
     print(format_rows(rows))
     if args.json is not None:
         text = json.dumps(rows, indent=1, default=lambda x: None if isinstance(x, float) and not math.isfinite(x) else x)
@@ -92,17 +99,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def evaluate(path: Path, model, progress: bool) -> dict:
-    """P1 metrics at RADIUS_M of the model and of Scan Context on one recording."""
+def evaluate(source, model, progress: bool) -> dict:
+    """P1 metrics at RADIUS_M of the model and of Scan Context on one described recording."""
     from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
-    from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod, describe_source
+    from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod
     from vbrl_ros.evaluation.metrics import evaluate_online
     from vbrl_ros.evaluation.retrieval import online_retrieval
 
-    source = describe_source(path, model.config, ScanContextConfig(), progress=progress,
-                             translation_search=model.translation_search())
-    if source.positions is None or not np.isfinite(source.positions).all():
-        raise ValueError(f"{path}: every scan needs a pose for the ground truth")
     out = {}
     for name, method in (("vbrl", VBRLMethod("VBRL", model, prune=0.0001)),
                          ("scan_context", ScanContextMethod(ScanContextConfig()))):
