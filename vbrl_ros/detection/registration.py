@@ -4,8 +4,8 @@ The place recogniser says "the current scan (query) looks like keyframe j
 (match)"; this module checks it geometrically and measures the relative pose.
 The match cloud becomes a KISS-ICP ``VoxelHashMap`` and the query is registered
 against it with KISS-ICP's own point-to-point, robust-kernel ICP
-(``Registration.align_points_to_map``), starting from an initial guess (e.g. the
-yaw a Scan Context-style recogniser returns, :func:`yaw_guess`).
+(``Registration.align_points_to_map``), starting from an initial guess or, without
+one, from a search over every heading (:mod:`~vbrl_ros.detection.coarse_alignment`).
 
 Unlike odometry, a loop closure compares two *single* scans with no
 constant-velocity prediction, so the initial error can be metres and degrees.
@@ -31,22 +31,25 @@ Conventions
   as independent, which sampling-induced (not noise-induced) residuals are
   not: on the test scenes the true error was ~3-5x the reported standard
   deviation, and degenerate places (corridors) are worse. A lower bound.
-* ``fitness`` is the fraction of the downsampled query *structure* (non-ground)
-  points whose nearest match point lies within ``max_correspondence_distance``
-  after alignment (all points when a scan has almost no structure). Ground is
-  left out because it overlaps at almost any two places (unrelated scenes
-  scored ~0.55 with it, ~0.15 without; true matches ~0.9).
+* ``fitness`` is the two clouds' structure overlap after alignment and
+  ``constraint`` how well their surfaces fix the horizontal position
+  (:mod:`vbrl_ros.detection.overlap`, which says why); :meth:`Verification.rejection`
+  is the acceptance rule. ``n_inliers`` / ``n_query_points`` is KISS-ICP's own inlier
+  fraction at ``max_correspondence_distance``, over structure (non-ground) points.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from kiss_icp.mapping import VoxelHashMap
 from kiss_icp.registration import Registration
 from kiss_icp.voxelization import voxel_down_sample
 from scipy.spatial import cKDTree
+
+from vbrl_ros.detection.coarse_alignment import coarse_alignment
+from vbrl_ros.detection.overlap import MIN_CONSTRAINT, agreement
 
 # Map voxel size of each stage as a multiple of ``voxel_size`` (coarse to fine).
 COARSE_TO_FINE = (8.0, 2.0, 1.0)
@@ -56,6 +59,7 @@ _MAX_POINTS_PER_VOXEL = 20
 # Fewer inliers than this cannot constrain 6 DoF robustly (nor give a variance).
 _MIN_POINTS = 20
 _CONVERGENCE_CRITERION = 1e-4  # KISS-ICP default: stop when |dx| < 1e-4
+_CHECK_ITERATIONS = 3  # of the final stage again, to see that it has settled
 # Ground source points are kept at this many voxels (structure at 1.5), see _ground_mask.
 _GROUND_THINNING = 4.0
 
@@ -65,12 +69,23 @@ class Verification:
     """Result of :func:`verify_loop` (see the module docstring for conventions)."""
 
     T_query_match: np.ndarray  # (4, 4), p_query = T @ p_match
-    fitness: float  # in [0, 1], higher = better overlap
+    fitness: float  # in [0, 1], structure overlap, higher = the clouds coincide more
     rmse: float  # metres, over inlier correspondences (inf without any)
     covariance: np.ndarray  # (6, 6) [translation, rotation]; all-NaN when unknown
     converged: bool
-    n_query_points: int = 0  # downsampled query points fitness is measured over
+    n_query_points: int = 0  # downsampled query structure points the inliers are counted over
     n_inliers: int = 0
+    constraint: float = 0.0  # in [0, 1]; 0: some horizontal direction is unconstrained
+
+    def rejection(self, min_fitness: float) -> str | None:
+        """Why this registration is not a loop closure (None: it is one)."""
+        if not self.converged:
+            return "not converged"
+        if self.constraint < MIN_CONSTRAINT:
+            return "degenerate"
+        if self.fitness < min_fitness:
+            return "low fitness"
+        return None
 
 
 def yaw_guess(yaw_rad: float) -> np.ndarray:
@@ -113,17 +128,17 @@ def verify_loop(
 ) -> Verification:
     """Register ``query_points`` (N, 3) onto ``match_points`` (M, 3) with KISS-ICP.
 
-    ``initial_guess`` is a guess of ``T_query_match`` (identity by default); the
-    basin is about +-10 degrees of yaw with metres of translation, so pass the
-    recogniser's yaw (:func:`yaw_guess`). ``max_correspondence_distance``
+    ``initial_guess`` is a guess of ``T_query_match``; the basin is about +-10 degrees of
+    yaw with metres of translation. Without one, a search over every heading finds it
+    (:mod:`~vbrl_ros.detection.coarse_alignment`; both clouds levelled, z up). ``max_correspondence_distance``
     (default ``voxel_size``) gates the final ICP stage and defines inliers and
     fitness. ``max_threads=0`` lets KISS-ICP (TBB) use every core. Empty or tiny
     clouds give ``converged=False`` and ``fitness=0`` instead of raising.
     """
     if voxel_size <= 0:
         raise ValueError(f"voxel_size must be positive, got {voxel_size}")
-    guess = np.eye(4) if initial_guess is None else np.asarray(initial_guess, dtype=np.float64)
-    if guess.shape != (4, 4) or not np.all(np.isfinite(guess)):
+    guess = None if initial_guess is None else np.asarray(initial_guess, dtype=np.float64)
+    if guess is not None and (guess.shape != (4, 4) or not np.all(np.isfinite(guess))):
         raise ValueError("initial_guess must be a finite 4x4 matrix")
     threshold = voxel_size if max_correspondence_distance is None else max_correspondence_distance
     threshold = float(threshold)
@@ -138,16 +153,22 @@ def verify_loop(
     query = voxel_down_sample(query, 0.5 * voxel_size) if len(query) else query
     source, n_structure = _source(query, voxel_size)
     if len(match) < _MIN_POINTS or len(source) < _MIN_POINTS:
-        return _failure(guess, n_query=n_structure)
+        return _failure(np.eye(4) if guess is None else guess, n_query=n_structure)
+    stages = COARSE_TO_FINE[:-1]
+    if guess is None:
+        guess = coarse_alignment(source[:n_structure], match[~_ground_mask(match)]).T_query_match
+        stages = stages[1:]  # the search is within a cell and a few degrees: no 8-voxel stage
+    guess = _rigid(guess)
 
     registration = Registration(
         max_num_iterations=int(max_iterations),
         convergence_criterion=_CONVERGENCE_CRITERION,
         max_num_threads=int(max_threads),
     )
+    maps = _MapsOf(match)
     # KISS-ICP solves for T_match_query (query points into the match map).
     T_mq = np.linalg.inv(guess)
-    for factor in COARSE_TO_FINE[:-1]:
+    for factor in stages:
         # A coarse stage: the map voxel sets the reach of the neighbour search;
         # the source stays the fine one (a coarser source lost the basin in our
         # tests). sigma = 2 map voxels ~ the error this stage must remove; as in
@@ -156,35 +177,49 @@ def verify_loop(
         # r = 0.64 sqrt(k): 2.6 m on the 8 m map, 1.3 m on the 2 m map (v = 1).
         stage_voxel = factor * voxel_size
         sigma = 2.0 * stage_voxel
-        T_mq = _align(registration, source, match, stage_voxel, T_mq, 3.0 * sigma, sigma)
+        T_mq = _align(registration, source, maps.at(stage_voxel), T_mq, 3.0 * sigma, sigma)
     # The final stage only polishes: gate at the inlier threshold, kernel
     # threshold / 3 (half weight at 0.37 m for the default 1 m threshold).
-    T_mq = _align(registration, source, match, voxel_size, T_mq, threshold, threshold / 3.0)
+    T_mq = _align(registration, source, maps.at(voxel_size), T_mq, threshold, threshold / 3.0)
 
-    # Convergence = the final stage is a fixed point: running it again from its
-    # own result barely moves (the bindings do not report iterations).
-    T_again = _align(registration, source, match, voxel_size, T_mq, threshold, threshold / 3.0)
+    # Convergence = the final stage is a fixed point: a few more of its iterations from its
+    # own result barely move (the bindings do not report iterations).
+    check = Registration(max_num_iterations=_CHECK_ITERATIONS, convergence_criterion=_CONVERGENCE_CRITERION,
+                         max_num_threads=int(max_threads))
+    T_again = _align(check, source, maps.at(voxel_size), T_mq, threshold, threshold / 3.0)
     step = np.linalg.inv(T_mq) @ T_again
     settled = bool(np.linalg.norm(step[:3, 3]) < 0.01 * voxel_size and _angle(step) < 1e-3)
     # Fitness over structure only: ground overlaps at almost any two places,
     # and far ground rings are too sparse to overlap even at the right one.
     scored = n_structure if n_structure >= _MIN_POINTS else len(source)
-    return _evaluate(source, scored, match, np.linalg.inv(T_mq), threshold, settled)
+    check = _evaluate(source, scored, match, np.linalg.inv(T_mq), threshold, settled)
+    evidence = agreement(query, match, check.T_query_match, voxel_size, _ground_mask)
+    return replace(check, fitness=evidence.overlap, constraint=evidence.constraint)
+
+
+class _MapsOf:
+    """KISS-ICP maps of one cloud, one per voxel size, each built once."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.points, self.maps = points, {}
+
+    def at(self, voxel: float) -> VoxelHashMap:
+        if voxel not in self.maps:
+            # max_distance only prunes the map in update(); add_points keeps everything.
+            self.maps[voxel] = VoxelHashMap(voxel, np.inf, max_points_per_voxel=_MAX_POINTS_PER_VOXEL)
+            self.maps[voxel].add_points(self.points)
+        return self.maps[voxel]
 
 
 def _align(
     registration: Registration,
     source: np.ndarray,
-    match: np.ndarray,
-    map_voxel: float,
+    voxel_map: VoxelHashMap,
     T_mq: np.ndarray,
     max_distance: float,
     kernel: float,
 ) -> np.ndarray:
-    """One KISS-ICP registration of ``source`` against a fresh map of ``match``."""
-    # max_distance only prunes the map in update(); add_points keeps everything.
-    voxel_map = VoxelHashMap(map_voxel, np.inf, max_points_per_voxel=_MAX_POINTS_PER_VOXEL)
-    voxel_map.add_points(match)
+    """One KISS-ICP registration of ``source`` against ``voxel_map``."""
     T = registration.align_points_to_map(
         points=source,
         voxel_map=voxel_map,
@@ -298,6 +333,17 @@ def _hat(v: np.ndarray) -> np.ndarray:
 
 def _angle(T: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def _rigid(T: np.ndarray) -> np.ndarray:
+    """T with its rotation replaced by the nearest rotation matrix: KISS-ICP (Sophus) aborts the
+    whole process on a rotation that is orthogonal only to float precision, as products of
+    poses are."""
+    u, _, vt = np.linalg.svd(T[:3, :3])
+    rigid = np.eye(4)
+    rigid[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    rigid[:3, 3] = T[:3, 3]
+    return rigid
 
 
 def _clean(points: np.ndarray) -> np.ndarray:

@@ -1,0 +1,71 @@
+"""Coarse alignment: every heading searched, yaw and translation found to a step and a cell,
+on revisits the simulator drives the other way round."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from vbrl_ros.detection.coarse_alignment import CELL_M, YAW_STEP_DEG, coarse_alignment
+
+sim = pytest.importorskip("vbrl_ros.simulator")
+SENSOR_HEIGHT_M = 1.8  # the route's default: the ground is flat at -1.8 m in the sensor frame
+
+
+def structure(points: np.ndarray) -> np.ndarray:
+    return points[points[:, 2] > 0.3 - SENSOR_HEIGHT_M]
+
+
+def yaw_of(T: np.ndarray) -> float:
+    return math.atan2(T[1, 0], T[0, 0])
+
+
+@pytest.fixture(scope="module")
+def run():
+    town = sim.generate_town(sim.TownConfig(blocks_x=2, blocks_y=2), seed=3)
+    route = sim.make_route(town, sim.RouteConfig(loops=2, spacing_m=2.0))
+    return sim.simulate_run(town, route, sim.LidarConfig(beams=32, columns=720), "summer_clear", seed=1)
+
+
+def revisits(run, turned_deg: float, count: int) -> list[tuple[int, int]]:
+    """``count`` (query, match) pairs 1-4 m apart whose headings differ by more than ``turned_deg``."""
+    poses = run.poses
+    pairs = []
+    for q in range(len(run) - 1, 0, -7):
+        gaps = np.linalg.norm(poses[:q - 10, :2, 3] - poses[q, :2, 3], axis=1)
+        for m in np.flatnonzero((gaps > 1.0) & (gaps < 4.0)):
+            turn = abs(math.degrees(math.remainder(yaw_of(poses[q]) - yaw_of(poses[m]), 2 * math.pi)))
+            if turn > turned_deg:
+                pairs.append((q, int(m)))
+                break
+        if len(pairs) == count:
+            return pairs
+    raise AssertionError(f"the route has fewer than {count} such revisits")
+
+
+def test_finds_heading_and_offset_of_reversed_revisits_on_the_other_lane(run):
+    for q, m in revisits(run, turned_deg=150.0, count=4):
+        query, match = run.scan(q), run.scan(m)
+        truth = np.linalg.inv(query.pose) @ match.pose
+        found = coarse_alignment(structure(query.points), structure(match.points))
+        yaw_error = math.degrees(abs(math.remainder(yaw_of(found.T_query_match) - yaw_of(truth), 2 * math.pi)))
+        # KISS-ICP's basin is about +-10 degrees and metres: a step and a couple of cells are inside it
+        assert yaw_error <= YAW_STEP_DEG / 2 + 1.0, (q, m, yaw_error)
+        assert np.linalg.norm(found.T_query_match[:2, 3] - truth[:2, 3]) <= 2 * CELL_M, (q, m)
+        np.testing.assert_allclose(found.T_query_match[2], [0, 0, 1, 0])  # horizontal only
+
+
+def test_an_unrelated_place_correlates_less_than_the_same_place(run):
+    (q, m), = revisits(run, turned_deg=150.0, count=1)
+    far = int(np.argmax(np.linalg.norm(run.poses[:, :2, 3] - run.poses[q, :2, 3], axis=1)))
+    query = structure(run.scan(q).points)
+    same = coarse_alignment(query, structure(run.scan(m).points))
+    other = coarse_alignment(query, structure(run.scan(far).points))
+    assert other.score < 0.7 * same.score
+
+
+def test_empty_structure_gives_a_zero_score():
+    found = coarse_alignment(np.empty((0, 3)), np.empty((0, 3)))
+    assert found.score == 0.0 and found.T_query_match.shape == (4, 4)

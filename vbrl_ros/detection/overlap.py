@@ -1,0 +1,81 @@
+"""Evidence that a registered loop closure is real: do the two clouds agree, and does their
+structure pin the position down at all?
+
+KISS-ICP's inlier fraction at its final gate (one voxel) is a weak test: on real recordings
+unrelated places reach 0.7-0.8 of it, as many true revisits do. Two measurements separate
+them far better (measured on the shared recordings, candidates of the recogniser and of
+Scan Context alike):
+
+* **overlap** — after alignment, the share of each cloud's structure (ground left out) that
+  lies within ``OVERLAP_DISTANCE`` voxels of the other cloud; the smaller of the two shares.
+  Both clouds come thinned (at most one point per half voxel, as registration keeps them; the
+  database stores one per voxel), so the figure hardly depends on the sensor's density. A tight distance rewards surfaces that coincide, not clutter that happens
+  to be near; taking both directions stops a small cloud from overlapping a large one.
+* **constraint** — how well the matched surfaces fix the horizontal position: the weakest
+  over the strongest eigenvalue of the point-to-plane information of the inliers in x, y.
+  In a corridor or along a uniform facade every normal is across the axis, ICP slides freely
+  along it and lands wherever the initial guess was, with an excellent overlap: 0.01-0.03 on
+  such false closures, 0.2-0.6 on true ones.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+#: Points closer than this many voxels to the other cloud overlap it.
+OVERLAP_DISTANCE = 0.3
+#: Below this constraint a registration cannot fix the position along some horizontal axis.
+MIN_CONSTRAINT = 0.1
+#: Neighbours of a match point that define its surface normal.
+NORMAL_NEIGHBOURS = 8
+_MIN_STRUCTURE = 10
+
+
+@dataclass(frozen=True)
+class Agreement:
+    overlap: float  # in [0, 1], higher = the clouds coincide more
+    constraint: float  # in [0, 1], 0 = one horizontal direction is unconstrained
+
+
+def agreement(query: np.ndarray, match: np.ndarray, T_query_match: np.ndarray, voxel: float,
+              ground_mask) -> Agreement:
+    """Overlap and constraint of ``match`` carried into the query frame by ``T_query_match``.
+
+    ``query``, ``match``: (N, 3) float64 finite points, thinned; ``ground_mask(points) -> bool
+    array`` tells ground points, which overlap at almost any two places and are left out.
+    """
+    q = query
+    m = match @ T_query_match[:3, :3].T + T_query_match[:3, 3]
+    q_structure = q[~ground_mask(q)] if len(q) else q
+    m_structure = m[~ground_mask(m)] if len(m) else m
+    if min(len(q_structure), len(m_structure)) < _MIN_STRUCTURE:
+        return Agreement(0.0, 0.0)
+    near = OVERLAP_DISTANCE * voxel
+    to_match, nearest = cKDTree(m).query(q_structure)
+    to_query, _ = cKDTree(q).query(m_structure)
+    overlap = min(float(np.mean(to_match < near)), float(np.mean(to_query < near)))
+    inlier = to_match < voxel
+    return Agreement(overlap, _constraint(q_structure[inlier], m, nearest[inlier]))
+
+
+def _constraint(points: np.ndarray, surface: np.ndarray, nearest: np.ndarray) -> float:
+    """Weakest / strongest eigenvalue of sum(w n_xy n_xy^T) over ``points`` matched to ``surface``.
+
+    n: the normal of the matched surface point (the smallest principal axis of its
+    neighbourhood), w: how planar that neighbourhood is, so scattered clutter counts less.
+    """
+    if len(points) < _MIN_STRUCTURE or len(surface) < NORMAL_NEIGHBOURS:
+        return 0.0
+    used, where = np.unique(nearest, return_inverse=True)
+    _, neighbours = cKDTree(surface).query(surface[used], k=NORMAL_NEIGHBOURS)
+    local = surface[neighbours] - surface[neighbours].mean(axis=1, keepdims=True)
+    values, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
+    planarity = (values[:, 1] - values[:, 0]) / np.maximum(values[:, 2], 1e-12)
+    normal_xy = vectors[:, :2, 0][where]
+    weight = planarity[where]
+    information = np.einsum("n,ni,nj->ij", weight, normal_xy, normal_xy)
+    low, high = np.linalg.eigvalsh(information)
+    return float(low / high) if high > 0 else 0.0
