@@ -174,7 +174,7 @@ def test_a_tilted_sensor_closes_the_loop_with_the_true_relative_pose(model, town
     assert angle_between_up(truth) > 9.0  # the sensors really are tilted against each other
     translation, angle = errors(found.T_query_match, truth)
     assert np.linalg.norm(translation) < 0.3 and angle < 3.0, (translation, angle)
-    assert found.match_id == 0 and found.fitness >= 0.5
+    assert found.match_id == 0 and found.fitness >= DetectorSettings().min_fitness
     np.testing.assert_allclose(detector.database.frame(0), detector.featurizer.frame(match.points).matrix)
     assert found.covariance.shape == (6, 6) and np.isfinite(found.covariance).all()
 

@@ -10,13 +10,14 @@ its stored cloud and the verification live in that levelled frame, and the publi
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from vbrl_ros.detection.database import Candidate, KeyframeDatabase
-from vbrl_ros.detection.registration import Verification, downsample_for_storage, verify_loop, yaw_guess
+from vbrl_ros.detection.registration import Verification, downsample_for_storage, verify_loop
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.index.translation_search import view_offsets
 from vbrl_ros.model.model_file import VBRLModel
@@ -51,14 +52,18 @@ class KeyframeResult:
 class LoopClosureDetector:
     """Featurize a keyframe, find it in the database, verify, then remember it.
 
-    ``distance_threshold``: the settings' one, or the model's own where they say 0.
+    ``distance_threshold``: the settings' one; where they say 0, none with verification (every one
+    of the ``top_k`` is verified) and the model's own without.
     """
 
     def __init__(self, model: VBRLModel, database: KeyframeDatabase, settings: DetectorSettings) -> None:
         self.model = model
         self.database = database
         self.settings = settings
-        self.distance_threshold = settings.distance_threshold or model.distance_threshold()
+        # with verification every one of the top_k is checked: a distance threshold calibrated on
+        # one sensor is far too strict on another, the geometry is not
+        self.distance_threshold = settings.distance_threshold or (
+            math.inf if settings.verify else model.distance_threshold())
         step = model.translation_search() if settings.translation_search < 0 else settings.translation_search
         self.view_offsets = view_offsets(step)
         self.featurizer = model.featurizer()
@@ -82,9 +87,7 @@ class LoopClosureDetector:
             exclude_recent_s=cfg.exclude_recent_s,
         )
         t2 = time.perf_counter()
-        # thinned first, then levelled: the same cloud for a fraction of the rotations
-        cloud = (frame.apply(downsample_for_storage(points, cfg.verification_voxel)).astype(np.float32)
-                 if cfg.verify else None)
+        cloud = verification_cloud(points, frame.matrix, cfg.verification_voxel) if cfg.verify else None
         closures: list[LoopClosure] = []
         rejected = 0
         for candidate in candidates:
@@ -98,10 +101,10 @@ class LoopClosureDetector:
             )
             if cfg.verify:
                 check = self._verify(cloud, candidate)
-                if not check.converged or check.fitness < cfg.min_fitness:
+                T, covariance = to_sensor_frames(check, frame.matrix, self.database.frame(candidate.index))
+                if closure_rejection(check, T, cfg) is not None:
                     rejected += 1
                     continue
-                T, covariance = to_sensor_frames(check, frame.matrix, self.database.frame(candidate.index))
                 closure = LoopClosure(
                     **{**closure.__dict__, "T_query_match": T, "fitness": check.fitness,
                        "covariance": covariance}
@@ -116,12 +119,29 @@ class LoopClosureDetector:
         return KeyframeResult(keyframe_id, closures, len(candidates), rejected, timings)
 
     def _verify(self, cloud: np.ndarray, candidate: Candidate) -> Verification:
-        # The recogniser's yaw (and, with translation search, the match's position) puts
-        # KISS-ICP inside its +-10 degree basin for revisits in any direction.
-        guess = yaw_guess(candidate.yaw)
-        guess[:2, 3] = candidate.offset
-        return verify_loop(cloud, self.database.cloud(candidate.index), initial_guess=guess,
+        # no initial guess: the verification searches every heading itself, as the
+        # recogniser's yaw is often a symmetric place's other heading
+        return verify_loop(cloud, self.database.cloud(candidate.index),
                            voxel_size=self.settings.verification_voxel)
+
+
+def verification_cloud(points: np.ndarray, frame: np.ndarray, voxel: float) -> np.ndarray:
+    """What a keyframe keeps for verification: one point per ``voxel``, in its levelled ``frame``
+    (4x4 sensor -> grid), float32 (M, 3). Thinned first, then levelled: the same cloud for a
+    fraction of the rotations."""
+    thinned = downsample_for_storage(points, voxel).astype(np.float64)
+    return (thinned @ frame[:3, :3].T + frame[:3, 3]).astype(np.float32)
+
+
+def closure_rejection(check: Verification, T_query_match: np.ndarray,
+                      settings: DetectorSettings) -> str | None:
+    """Why a verified candidate is not published (None: it is). ``T_query_match``: between
+    the sensors. Beyond ``max_closure_distance`` the registration may be right, but the two
+    keyframes are not the same place."""
+    reason = check.rejection(settings.min_fitness)
+    if reason is None and np.linalg.norm(T_query_match[:3, 3]) > settings.max_closure_distance:
+        return "too far"
+    return reason
 
 
 def to_sensor_frames(check: Verification, query_frame: np.ndarray,

@@ -19,12 +19,13 @@ class DetectorSettings:
     """Policy of :class:`~vbrl_ros.detection.detector.LoopClosureDetector`."""
 
     session: str = "default"
-    distance_threshold: float = 0.0  # accept Eq. 4 distance <= this; 0: the model's own
+    distance_threshold: float = 0.0  # accept Eq. 4 distance <= this; 0: any with verify, else the model's own
     exclude_recent_s: float = 30.0  # same-session keyframes younger than this are not candidates
     top_k: int = 3  # candidates scored (and at most verified) per keyframe
     max_closures: int = 1  # accepted closures published per keyframe
     verify: bool = True  # KISS-ICP registration of each candidate
-    min_fitness: float = 0.5  # verified closures below this inlier fraction are rejected
+    min_fitness: float = 0.2  # verified closures whose structure overlap is below this are rejected
+    max_closure_distance: float = 5.0  # metres; verified closures between sensors farther apart are rejected
     verification_voxel: float = 1.0  # metres; stored clouds and registration use this voxel
     translation_search: float = -1.0  # metres between query viewpoints; 0: none; -1: the model's
 
@@ -36,6 +37,8 @@ class DetectorSettings:
             "top_k": (isinstance(self.top_k, int) and self.top_k >= 1, ">= 1"),
             "max_closures": (isinstance(self.max_closures, int) and self.max_closures >= 1, ">= 1"),
             "min_fitness": (0.0 <= self.min_fitness <= 1.0, "in [0, 1]"),
+            "max_closure_distance": (_at_least(self.max_closure_distance, 0) and self.max_closure_distance > 0,
+                                     "a positive number of metres"),
             "verification_voxel": (_at_least(self.verification_voxel, 0) and self.verification_voxel > 0,
                                    "a positive number"),
             "translation_search": (self.translation_search == -1 or (_at_least(self.translation_search, 0)

@@ -39,12 +39,17 @@ DESCRIPTIONS: dict[str, str] = {
     "level_from_odometry": "level each scan by odometry's roll and pitch (odometry must be in the LiDAR's "
                            "frame) instead of by its own ground; the ground still sets the height.",
     "distance_threshold": "accept a candidate whose distance is <= this (lower = more similar). "
-                          "0: the model's own calibrated threshold.",
+                          "0: with verify, every one of the top_k is verified; without, the "
+                          "model's own calibrated threshold.",
     "exclude_recent_s": "same-session keyframes younger than this many seconds are not candidates.",
     "top_k": "candidates scored, and at most verified, per keyframe.",
     "max_closures": "accepted loop closures published per keyframe.",
     "verify": "check each candidate by KISS-ICP registration of the two clouds.",
-    "min_fitness": "verified closures whose inlier fraction is below this are rejected (0 to 1).",
+    "min_fitness": "verified closures whose fitness (the share of each cloud's structure within 0.3 "
+                   "voxels of the other after registration, the smaller) is below this are rejected "
+                   "(0 to 1).",
+    "max_closure_distance": "verified closures between sensors farther apart than this many metres "
+                            "are rejected: the registration may be right, but they are not one place.",
     "verification_voxel": "voxel size in metres of the stored clouds and of their registration.",
     "translation_search": "metres between the extra viewpoints a query is also described from. 0: off; "
                           "-1: the model's own (1.5 for the built-in model).",
