@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -38,6 +39,8 @@ from vbrl_ros.evaluation.baselines.scan_context import (
     scan_context,
 )
 from vbrl_ros.datasets.keyframe_selection import select_keyframes, source_points
+from vbrl_ros.detection.detector import verification_cloud
+from vbrl_ros.evaluation.verified import KeyframeClouds
 from vbrl_ros.features.parallel import bounded_map, default_workers
 
 __all__ = ["SourceDescriptors", "describe_source", "VBRLMethod", "ScanContextMethod",
@@ -58,25 +61,29 @@ class SourceDescriptors:
     positions: np.ndarray | None  # (n, 3) ground truth only; None without poses
     views: np.ndarray | None = None  # (n, V, d) raw descriptors from view_offsets; [:, 0] = vbrl
     view_offsets: np.ndarray | None = None  # (V, 2) metres, the first (0, 0)
+    clouds: KeyframeClouds | None = None  # what the node keeps for verification, when asked for
 
     def __len__(self) -> int:
         return len(self.keyframe_index)
 
 
-_worker: tuple[Featurizer, ScanContextConfig, np.ndarray] | None = None
+_worker: tuple[Featurizer, ScanContextConfig, np.ndarray, float | None] | None = None
 
 
-def _init_worker(config_dict: dict, sc_dict: dict, offsets: np.ndarray) -> None:
+def _init_worker(config_dict: dict, sc_dict: dict, offsets: np.ndarray, voxel: float | None) -> None:
     global _worker
-    _worker = (Featurizer(VBRLConfig.from_dict(config_dict)), ScanContextConfig(**sc_dict), offsets)
+    _worker = (Featurizer(VBRLConfig.from_dict(config_dict)), ScanContextConfig(**sc_dict), offsets, voxel)
 
 
-def _describe(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(views (V, d), Scan Context): the VBRL views as the node computes them."""
+def _describe(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+    """(views (V, d), Scan Context, verification cloud or None, levelled frame 4x4): the VBRL
+    views and the cloud as the node computes them."""
     assert _worker is not None
-    featurizer, sc_config, offsets = _worker
-    views = featurizer.describe_views(points, offsets, featurizer.frame(points))
-    return views, scan_context(points, sc_config)
+    featurizer, sc_config, offsets, voxel = _worker
+    frame = featurizer.frame(points)
+    views = featurizer.describe_views(points, offsets, frame)
+    cloud = None if voxel is None else verification_cloud(points, frame.matrix, voxel)
+    return views, scan_context(points, sc_config), cloud, frame.matrix
 
 
 def describe_source(
@@ -91,30 +98,31 @@ def describe_source(
     workers: int | None = None,
     progress: bool = True,
     translation_search: float = 0.0,
+    verification_voxel: float | None = None,
 ) -> SourceDescriptors:
     """Read the keyframes of ``path`` once and compute both descriptors of each (and the VBRL
-    views of :func:`~vbrl_ros.index.translation_search.view_offsets` for ``translation_search`` > 0)."""
+    views of :func:`~vbrl_ros.index.translation_search.view_offsets` for ``translation_search`` > 0;
+    with ``verification_voxel`` also the clouds the node would keep for verification)."""
     workers = default_workers() if workers is None else workers
     offsets = view_offsets(translation_search)
-    init = (config.to_dict(), asdict(sc_config), offsets)
+    init = (config.to_dict(), asdict(sc_config), offsets, verification_voxel)
     with open_source(path, topic=topic, poses=poses, progress=progress) as source:
         indices = select_keyframes(source, distance=keyframe_distance, every=every)
         scans = source_points(source, indices)
         bar = tqdm(total=len(indices), desc=f"describing {source.name}", unit="scan",
                    disable=not progress, leave=False)
-        vbrl, sc = [], []
-        try:
+        vbrl, sc, clouds, frames = [], [], [], []
+        with ExitStack() as stack:
+            stack.callback(bar.close)
             if workers <= 1:
                 _init_worker(*init)
                 rows = map(_describe, scans)
-                for a, b in rows:
-                    vbrl.append(a), sc.append(b), bar.update()
             else:
-                with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init) as pool:
-                    for a, b in bounded_map(pool, _describe, scans, 4 * workers):
-                        vbrl.append(a), sc.append(b), bar.update()
-        finally:
-            bar.close()
+                pool = stack.enter_context(ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init))
+                rows = bounded_map(pool, _describe, scans, 4 * workers)
+            for views_of_scan, context, cloud, frame in rows:
+                vbrl.append(views_of_scan), sc.append(context), clouds.append(cloud), frames.append(frame)
+                bar.update()
         positions = None if source.poses is None else source.poses[indices, :3, 3].copy()
         d = Featurizer(config).dimension
         views = np.stack(vbrl) if vbrl else np.zeros((0, len(offsets), d), np.float32)
@@ -126,6 +134,7 @@ def describe_source(
             positions=positions,
             views=views if len(offsets) > 1 else None,
             view_offsets=offsets,
+            clouds=None if verification_voxel is None else KeyframeClouds(clouds, frames),
         )
 
 
@@ -182,7 +191,6 @@ class VBRLMethod:
                  prune: float = 0.0) -> None:
         self.name, self.model, self.exact = name, model, exact
         self.scorer = model.scorer(prune=prune)
-        self.yaws: dict[int, np.ndarray] = {}  # query -> yaws of its top-K (latest distances_fn)
 
     def compact(self, raw: np.ndarray) -> np.ndarray:
         """Standardised active rows of raw descriptors (n, d): what the index stores."""
@@ -199,8 +207,6 @@ class VBRLMethod:
         Q = self.compact(queries.vbrl)
         T = Q if database is queries else self.compact(database.vbrl)
         index = self.new_index()
-        self.yaws = {}
-        self.offsets: dict[int, np.ndarray] = {}  # query -> viewpoints of its top-K
         raw_views, offsets = queries.views, queries.view_offsets
 
         def fn(i: int, candidates: np.ndarray) -> np.ndarray:
@@ -216,7 +222,6 @@ class VBRLMethod:
             else:  # as the node: the query from every viewpoint
                 found = search_views(index, self.compact(raw_views[i]), offsets, TOP_K_RETRIEVED,
                                      allowed, exact=self.exact)
-            self.yaws[i], self.offsets[i] = found.yaws, found.offsets
             out = np.full(len(candidates), np.inf)  # not retrieved: never a match
             out[found.indices] = found.distances
             return out

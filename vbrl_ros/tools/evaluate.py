@@ -24,6 +24,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from vbrl_ros.detection.settings import DetectorSettings
+from vbrl_ros.tools import evaluate_verified
+from vbrl_ros.tools.evaluate_output import format_table, json_safe, write_matches
+from vbrl_ros.tools.evaluate_verified import VerifiedOutputs, verify_outputs
 from vbrl_ros.evaluation.matches_json import matches_to_json
 from vbrl_ros.evaluation.metrics import (
     RetrievalMetrics,
@@ -42,6 +46,7 @@ if TYPE_CHECKING:
     from vbrl_ros.evaluation.methods import SourceDescriptors
 
 TOP_K = 5  # Recall@5
+DETECTOR_DEFAULTS = DetectorSettings()
 REPORT_RADII = (3.0, 5.0)  # docs/design.md §3: report 3 m and 5 m
 
 
@@ -96,6 +101,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--sc-max-range", type=float, default=80.0, help="Scan Context range, m (80)")
     parser.add_argument("--sc-candidates", type=int, default=10,
                         help="Scan Context: ring-key prefilter candidates (10)")
+    verify = parser.add_argument_group(
+        "verified output", "--verify registers the full model's and Scan Context's top-k candidates "
+        "with KISS-ICP as the node does and reports the verified closures beside retrieval: swept "
+        "over fitness (best verified candidate per query), and at the node's settings")
+    verify.add_argument("--verify", action="store_true", help="evaluate the verified output too")
+    verify.add_argument("--verify-top-k", type=int, default=DETECTOR_DEFAULTS.top_k, metavar="K",
+                        help="candidates verified per query, as the node's top_k")
+    verify.add_argument("--min-fitness", type=float, default=DETECTOR_DEFAULTS.min_fitness,
+                        help="the node's min_fitness, for the operating point")
+    verify.add_argument("--distance-threshold", type=float, default=None, metavar="D",
+                        help="VBRL: verify only candidates at or below this distance, for the "
+                             "operating point (default: every one of the top-k, as the node)")
+    verify.add_argument("--max-closure-distance", type=float,
+                        default=DETECTOR_DEFAULTS.max_closure_distance, metavar="M",
+                        help="the node's max_closure_distance, metres")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
 
@@ -127,47 +147,6 @@ def load_models(path: Path, with_ablations: bool) -> tuple[dict[str, VBRLModel],
     return models, notes
 
 
-def _clean(value: Any) -> Any:
-    """JSON has no NaN/inf: undefined metrics become null."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_clean(v) for v in value]
-    return value
-
-
-def _fmt(x: float | None, width: int = 7) -> str:
-    return f"{'-':>{width}s}" if x is None or not math.isfinite(x) else f"{x:{width}.3f}"
-
-
-def format_table(metrics: dict[str, dict[float, RetrievalMetrics]], radii: list[float]) -> str:
-    lines = []
-    for r in radii:
-        lines.append(f"radius {r:g} m")
-        lines.append(f"  {'method':<15s} {'R@1':>7s} {'R@5':>7s} {'maxF1':>7s} {'AP':>7s} "
-                     f"{'R@100P':>7s} {'revisits':>9s} {'queries':>8s}")
-        for name, by_radius in metrics.items():
-            m = by_radius[r]
-            lines.append(f"  {name:<15s} {_fmt(m.recall_at_1)} {_fmt(m.recall_at_5)} {_fmt(m.max_f1)} "
-                         f"{_fmt(m.average_precision)} {_fmt(m.recall_at_100_precision)} "
-                         f"{m.num_revisits:>9d} {m.num_queries:>8d}")
-    return "\n".join(lines)
-
-
-def write_matches(path: Path, results: RetrievalResults, query_scans: np.ndarray,
-                  database_scans: np.ndarray) -> Path:
-    entries = matches_to_json(results, include_top_k=True)
-    if not (np.array_equal(query_scans, np.arange(len(query_scans)))
-            and np.array_equal(database_scans, np.arange(len(database_scans)))):
-        for e in entries:  # keyframe ordinals differ from scan indices: say both
-            e["query_scan"] = int(query_scans[e["query"]])
-            e["match_scan"] = int(database_scans[e["match"]]) if e["match"] >= 0 else -1
-    text = json.dumps(entries, indent=1, allow_nan=False)
-    return atomic_write(path, lambda handle: handle.write(text.encode()))
-
-
 @dataclass
 class Evaluation:
     """What ``vbrl eval`` compares: the methods, on the described sources, by the protocol."""
@@ -190,11 +169,16 @@ class Evaluation:
 def run(args: argparse.Namespace) -> int:
     check_arguments(args)
     evaluation = load(args)
-    metrics, full_results = evaluate_methods(args, evaluation)
+    metrics, retrieved = evaluate_methods(args, evaluation)
+    full_results = retrieved[FULL_NAME][1] if FULL_NAME in retrieved else None
     agreement = None
     if args.check_exact and full_results is not None:
         agreement = exact_agreement(args, evaluation, metrics, full_results)
-    report(args, evaluation, metrics, agreement, full_results)
+    verified = None
+    if args.verify:
+        verified = verify_outputs(args, evaluation.queries, evaluation.database, evaluation.models[FULL_NAME],
+                                  lambda results: score(args, evaluation, results), metrics, retrieved)
+    report(args, evaluation, metrics, agreement, full_results, verified)
     return 0
 
 
@@ -209,6 +193,7 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise ValueError("--align only applies to P2 (--against)")
     if args.translation_search is not None and not 0 <= args.translation_search <= 10:
         raise ValueError("--translation-search must be a step in [0, 10] metres")
+    evaluate_verified.check_arguments(args)
     for name, path in (("QUERY_SOURCE", args.query), ("--against", args.against), ("--model", args.model)):
         if path is not None and not Path(path).exists():  # before minutes of describing
             raise ValueError(f"{name} {path} does not exist")
@@ -237,7 +222,8 @@ def load(args: argparse.Namespace) -> Evaluation:
     step = full.translation_search() if args.translation_search is None else args.translation_search
     options = dict(topic=args.topic, poses=args.poses, keyframe_distance=args.keyframe_distance,
                    every=args.every, workers=args.workers, progress=not args.quiet,
-                   translation_search=step)
+                   translation_search=step,
+                   verification_voxel=DETECTOR_DEFAULTS.verification_voxel if args.verify else None)
     queries = describe_source(args.query, config, sc_config, **options)
     database = queries if args.against is None else describe_source(args.against, config, sc_config,
                                                                      **options)
@@ -275,16 +261,15 @@ def score(args: argparse.Namespace, evaluation: Evaluation,
 
 
 def evaluate_methods(args: argparse.Namespace, evaluation: Evaluation
-                     ) -> tuple[dict[str, dict[float, RetrievalMetrics]], RetrievalResults | None]:
-    """Metrics of every method by name, and the full model's retrieval results."""
+                     ) -> tuple[dict[str, dict[float, RetrievalMetrics]], dict[str, tuple[Any, RetrievalResults]]]:
+    """Metrics of every method by name, and each method with its retrieval results."""
     metrics: dict[str, dict[float, RetrievalMetrics]] = {}
-    full_results: RetrievalResults | None = None
+    retrieved: dict[str, tuple[Any, RetrievalResults]] = {}
     for method in evaluation.methods:
         results = retrieve(args, evaluation, method)
         metrics[method.name] = score(args, evaluation, results)
-        if method.name == FULL_NAME:
-            full_results = results
-    return metrics, full_results
+        retrieved[method.name] = (method, results)
+    return metrics, retrieved
 
 
 def exact_agreement(args: argparse.Namespace, evaluation: Evaluation,
@@ -323,7 +308,7 @@ def exact_agreement(args: argparse.Namespace, evaluation: Evaluation,
 
 def report(args: argparse.Namespace, evaluation: Evaluation,
            metrics: dict[str, dict[float, RetrievalMetrics]], agreement: dict[str, Any] | None,
-           full_results: RetrievalResults | None) -> None:
+           full_results: RetrievalResults | None, verified: VerifiedOutputs | None = None) -> None:
     """Print the table; write the JSON metrics, the PR curves and the matches asked for."""
     from vbrl_ros.evaluation import headroom
 
@@ -338,8 +323,10 @@ def report(args: argparse.Namespace, evaluation: Evaluation,
               f"unpruned brute-force top-1 on {agreement['same_top1']} of {agreement['queries']} "
               "queries")
         print(headroom.describe(agreement["key_rank"]))
+    if verified is not None:
+        print(evaluate_verified.format_points(verified, evaluation.radii))
     if args.json is not None:
-        print(f"metrics written to {write_metrics(args, evaluation, metrics, agreement)}")
+        print(f"metrics written to {write_metrics(args, evaluation, metrics, agreement, verified)}")
     plot = args.plot or (args.json.with_suffix(".png") if args.json else args.out_dir / "pr.png")
     from vbrl_ros.evaluation.plots import plot_pr_curves  # matplotlib: only when plotting
 
@@ -348,14 +335,15 @@ def report(args: argparse.Namespace, evaluation: Evaluation,
                    title=f"{title}, {args.radius:g} m")
     print(f"PR curves written to {plot}")
     if args.dump_matches is not None and full_results is not None:
-        out = write_matches(args.dump_matches, full_results, queries.keyframe_index,
-                            database.keyframe_index)
-        print(f"matches of {FULL_NAME} written to {out}")
+        entries = (matches_to_json(full_results, include_top_k=True) if verified is None
+                   else evaluate_verified.matches_entries(verified, FULL_NAME, full_results.database_limit))
+        out = write_matches(args.dump_matches, entries, queries.keyframe_index, database.keyframe_index)
+        print(f"{'verified ' if verified else ''}matches of {FULL_NAME} written to {out}")
 
 
 def write_metrics(args: argparse.Namespace, evaluation: Evaluation,
                   metrics: dict[str, dict[float, RetrievalMetrics]],
-                  agreement: dict[str, Any] | None) -> Path:
+                  agreement: dict[str, Any] | None, verified: VerifiedOutputs | None = None) -> Path:
     from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
 
     protocol, alignment = evaluation.protocol, evaluation.alignment
@@ -373,6 +361,7 @@ def write_metrics(args: argparse.Namespace, evaluation: Evaluation,
         "grid": evaluation.models[FULL_NAME].config.grid.kind, "exact_agreement": agreement,
         "metrics": {name: {f"{r:g}": m.summary() for r, m in by_r.items()}
                     for name, by_r in metrics.items()},
+        "verified": None if verified is None else verified.summary(metrics),
     }
-    text = json.dumps(_clean(report), indent=2, allow_nan=False)
+    text = json.dumps(json_safe(report), indent=2, allow_nan=False)
     return atomic_write(args.json, lambda h: h.write(text.encode()))

@@ -1,0 +1,111 @@
+"""The verified output's two readings, and verification of every candidate as the node does it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from vbrl_ros.detection.settings import DetectorSettings
+from vbrl_ros.evaluation.metrics import evaluate_online
+from vbrl_ros.evaluation.verified import (
+    Candidates,
+    KeyframeClouds,
+    VerifiedCandidates,
+    best_verified,
+    node_decision,
+    operating_point,
+    verify_candidates,
+)
+
+INF = math.inf
+
+
+def checked(fitness, rejection) -> VerifiedCandidates:
+    fitness = np.array(fitness, dtype=float)
+    return VerifiedCandidates(fitness, np.array(rejection, dtype=object),
+                              np.full((*fitness.shape, 4, 4), np.nan))
+
+
+# three queries, three candidates each: distance order, the rule's verdict and fitness
+CANDIDATES = Candidates(np.array([[4, 7, 9], [5, 6, -1], [2, 3, 1]]),
+                        np.array([[1.0, 2.0, 3.0], [1.5, 2.5, INF], [0.5, 0.6, 0.7]]))
+VERIFIED = checked([[0.15, 0.40, 0.30], [0.50, 0.10, np.nan], [0.60, 0.90, 0.80]],
+                   [[None, None, "degenerate"], [None, None, "no candidate"],
+                    ["not converged", "too far", "low fitness"]])
+
+
+def test_swept_reading_keeps_the_accepted_candidate_of_highest_fitness():
+    indices, distances = best_verified(CANDIDATES, VERIFIED)
+    # query 0: 7 (0.40) beats 4 (0.15); 9 is degenerate however fit. query 2: nothing accepted
+    np.testing.assert_array_equal(indices[:, 0], [7, 5, -1])
+    np.testing.assert_allclose(distances[:, 0], [0.60, 0.50, INF])
+
+
+def test_node_reading_takes_the_first_accepted_in_distance_order():
+    indices, decided = node_decision(CANDIDATES, VERIFIED, INF, min_fitness=0.2, top_k=3)
+    np.testing.assert_array_equal(indices[:, 0], [7, 5, -1])  # 4 is below 0.2
+    indices, _ = node_decision(CANDIDATES, VERIFIED, INF, min_fitness=0.1, top_k=3)
+    np.testing.assert_array_equal(indices[:, 0], [4, 5, -1])  # first, not fittest
+    indices, _ = node_decision(CANDIDATES, VERIFIED, 1.2, min_fitness=0.2, top_k=3)
+    np.testing.assert_array_equal(indices[:, 0], [-1, -1, -1])  # 7 and 5 beyond the distance
+    indices, decided = node_decision(CANDIDATES, VERIFIED, INF, min_fitness=0.2, top_k=1)
+    np.testing.assert_array_equal(indices[:, 0], [-1, 5, -1])
+    np.testing.assert_array_equal(decided[:, 0], [INF, 0.0, INF])
+
+
+def test_operating_point_counts_what_was_published():
+    positions = np.c_[np.arange(8) * 10.0, np.zeros(8), np.zeros(8)]
+    positions[6] = positions[0] + [1, 0, 0]  # query 6 revisits 0
+    positions[7] = positions[2] + [1, 0, 0]  # query 7 revisits 2
+    indices = np.array([[-1]] * 6 + [[0], [3]])  # 6 right, 7 wrong
+    decided = np.where(indices >= 0, 0.0, INF)
+    metrics = evaluate_online(positions, indices, decided, radius=3.0, exclude=3)
+    point = operating_point(metrics, accepted=2)
+    assert point.precision == 0.5 and point.recall == 0.5 and point.f1 == 0.5
+    nothing = operating_point(evaluate_online(positions, np.full((8, 1), -1), np.full((8, 1), INF), 3.0, 3), 0)
+    assert math.isnan(nothing.precision) and nothing.recall == 0.0
+
+
+sim = pytest.importorskip("vbrl_ros.simulator")
+
+
+@pytest.fixture(scope="module")
+def drive() -> tuple[KeyframeClouds, np.ndarray]:
+    """Levelled 1 m clouds of a simulated drive that comes back the other way."""
+    from vbrl_ros.detection.detector import verification_cloud
+    from vbrl_ros.model.builtin import load_default_model
+
+    town = sim.generate_town(sim.TownConfig(blocks_x=2, blocks_y=2), seed=2)
+    run = sim.simulate_run(town, sim.make_route(town, sim.RouteConfig(loops=2, spacing_m=6.0)),
+                           sim.LidarConfig(beams=32, columns=512), "summer_clear", seed=1)
+    featurizer = load_default_model().featurizer()
+    clouds, frames = [], []
+    for scan in run:
+        frame = featurizer.frame(scan.points).matrix
+        clouds.append(verification_cloud(scan.points, frame, 1.0))
+        frames.append(frame)
+    return KeyframeClouds(clouds, frames), run.poses
+
+
+def test_verifying_every_candidate_finds_the_revisits_and_rejects_the_rest(drive):
+    clouds, poses = drive
+    n = len(poses)
+    gaps = np.linalg.norm(poses[:, None, :2, 3] - poses[None, :, :2, 3], axis=2)
+    queries = [q for q in range(n) if (gaps[q, : max(q - 5, 0)] < 3.0).any()][:6]
+    assert len(queries) >= 4
+    indices = np.full((n, 2), -1)
+    for q in queries:  # the true revisit first, a far place second
+        indices[q] = [int(np.argmin(gaps[q, : q - 5])), int(np.argmax(gaps[q, : q - 5]))]
+    candidates = Candidates(indices, np.where(indices >= 0, 1.0, INF))
+    settings = DetectorSettings()
+    one = verify_candidates(clouds, None, candidates, settings, workers=1, progress=False)
+    two = verify_candidates(clouds, None, candidates, settings, workers=2, progress=False)
+    np.testing.assert_array_equal(one.fitness, two.fitness)  # deterministic, whatever the processes
+    accepted = one.accepted_at(settings.min_fitness)
+    assert accepted[queries, 0].all() and not accepted[queries, 1].any()
+    for q in queries:  # the published transform is the true one between the sensors
+        truth = np.linalg.inv(poses[q]) @ poses[indices[q, 0]]
+        assert np.linalg.norm(one.T_query_match[q, 0][:3, 3] - truth[:3, 3]) < 0.3
+    assert np.isnan(one.fitness[indices < 0]).all() and (one.rejection[indices < 0] == "no candidate").all()

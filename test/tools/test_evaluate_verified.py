@@ -1,0 +1,84 @@
+"""``vbrl eval --verify``: the verified output beside retrieval, for the model and Scan Context.
+
+The source is a KITTI-style folder written by ``vbrl simulate``: two loops that drive their
+streets the other way round, 16 beams (sparse, as a cheap sensor is).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vbrl_ros.evaluation.metrics import evaluate_online
+from vbrl_ros.tools.cli import main
+
+pytest.importorskip("vbrl_ros.simulator")
+
+EXCLUDE = "10"
+
+
+def vbrl(*argv) -> int:
+    return main([str(a) for a in argv])
+
+
+@pytest.fixture(scope="module")
+def verified(tmp_path_factory) -> tuple[dict, list[dict], Path, str]:
+    folder = tmp_path_factory.mktemp("verified")
+    assert vbrl("simulate", folder / "loops", "--format", "kitti", "--loops", "2", "--blocks", "2", "2",
+                "--spacing", "4", "--beams", "16", "--columns", "360", "--no-progress") == 0
+    source = folder / "loops" / "summer_clear"
+    out, dump = folder / "metrics.json", folder / "matches.json"
+    import contextlib
+    import io
+
+    text = io.StringIO()
+    with contextlib.redirect_stdout(text):
+        assert vbrl("eval", source, "--verify", "--exclude", EXCLUDE, "--json", out, "--dump-matches", dump,
+                    "--no-ablations", "--quiet", "--workers", "2") == 0
+    return json.loads(out.read_text()), json.loads(dump.read_text()), source, text.getvalue()
+
+
+def test_verified_rows_beside_retrieval_for_both_methods(verified):
+    report, _, _, text = verified
+    assert report["methods"] == ["VBRL", "Scan Context", "VBRL, verified", "Scan Context, verified"]
+    assert "at the node's settings (top 3, min_fitness 0.2" in text
+    points = report["verified"]["at_node_settings"]
+    assert set(points) == {"VBRL", "Scan Context"}
+    # simulated revisits, reversed on the other lane: what the node publishes is right and plenty
+    at_5m = points["VBRL"]["5"]
+    assert at_5m["precision"] >= 0.95 and at_5m["recall"] >= 0.5, at_5m
+    assert report["metrics"]["VBRL, verified"]["5"]["max_f1"] >= 0.7
+    assert report["verified"]["settings"]["top_k"] == 3
+
+
+def test_the_dump_names_the_best_verified_candidate_and_recomputes_the_swept_metrics(verified):
+    report, entries, source, _ = verified
+    assert {"query", "match", "distance", "fitness", "candidates", "candidate_fitness",
+            "candidate_rejection"} <= set(entries[0])
+    unverified = [e for e in entries if math.isnan(e["fitness"])]
+    assert unverified and all(e["match"] == e["candidates"][0] for e in unverified if e["candidates"])
+    for e in entries:
+        accepted = [f for f, why in zip(e["candidate_fitness"], e["candidate_rejection"]) if why is None]
+        assert (max(accepted) if accepted else None) == (None if math.isnan(e["fitness"]) else e["fitness"])
+    # any tool recomputes the verified row from the dump: score = 1 - fitness, lower = better
+    positions = np.loadtxt(source / "poses.txt").reshape(-1, 3, 4)[:, :, 3]
+    indices = np.full((len(positions), 1), -1)
+    scores = np.full((len(positions), 1), np.inf)
+    for e in entries:
+        if not math.isnan(e["fitness"]):
+            indices[e["query"]], scores[e["query"]] = e["match"], 1.0 - e["fitness"]
+    again = evaluate_online(positions, indices, scores, 5.0, int(EXCLUDE))
+    assert again.max_f1 == pytest.approx(report["metrics"]["VBRL, verified"]["5"]["max_f1"])
+
+
+def test_bad_verification_options_say_which(tmp_path, capsys):
+    source = tmp_path / "missing"
+    for option, value, named in (("--min-fitness", "1.5", "min_fitness"), ("--verify-top-k", "0", "top_k"),
+                                 ("--max-closure-distance", "-1", "max_closure_distance"),
+                                 ("--distance-threshold", "nan", "--distance-threshold")):
+        assert vbrl("eval", source, "--verify", option, value) != 0
+        assert named in capsys.readouterr().err

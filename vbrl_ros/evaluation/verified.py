@@ -1,0 +1,163 @@
+"""The verified output, evaluated: retrieval's top-k, each candidate registered with KISS-ICP as
+the node registers it, and the closure the node would publish.
+
+Every candidate of every query is verified once (:func:`verify_candidates`, in worker
+processes); the two readings of the result are then cheap:
+
+* **swept** (:func:`best_verified`): per query the accepted candidate with the highest fitness,
+  its fitness swept as the acceptance threshold — the verified counterpart of retrieval's
+  max F1, independent of any distance threshold;
+* **at the node's settings** (:func:`node_decision`): the first candidate, in distance order
+  within the distance threshold, that the detector's rule accepts — one operating point, what a
+  robot running the node with those settings publishes.
+
+Verification finds the relative pose itself (a search over every heading, then KISS-ICP), so
+any method's top-k are verified by the same code: Scan Context's like the model's.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+from vbrl_ros.detection.detector import closure_rejection, to_sensor_frames
+from vbrl_ros.detection.registration import verify_loop
+from vbrl_ros.detection.settings import DetectorSettings
+from vbrl_ros.evaluation.metrics import RetrievalMetrics
+from vbrl_ros.features.parallel import bounded_map, default_workers
+
+__all__ = ["Candidates", "KeyframeClouds", "VerifiedCandidates", "verify_candidates", "best_verified", "node_decision",
+           "OperatingPoint", "operating_point"]
+
+
+@dataclass(frozen=True)
+class Candidates:
+    """Per query the top-k of a method, best first; padding: index -1, distance inf."""
+
+    indices: np.ndarray  # (n, k) int64
+    distances: np.ndarray  # (n, k)
+
+
+@dataclass(frozen=True)
+class VerifiedCandidates:
+    """What verification said about each candidate of :class:`Candidates` (same shape)."""
+
+    fitness: np.ndarray  # (n, k), NaN for padding
+    rejection: np.ndarray  # (n, k) object: the rule's reason at fitness 0 (None: accepted)
+    T_query_match: np.ndarray  # (n, k, 4, 4) between the sensors, NaN for padding
+
+    def accepted_at(self, min_fitness: float) -> np.ndarray:
+        """(n, k) bool: converged, constrained, near enough and at least ``min_fitness``."""
+        return (self.rejection == None) & (self.fitness >= min_fitness)  # noqa: E711 (elementwise)
+
+
+@dataclass(frozen=True)
+class KeyframeClouds:
+    """Per keyframe of a source what the node keeps for verification: its cloud in its levelled
+    frame (see :func:`~vbrl_ros.detection.detector.verification_cloud`) and that frame (4x4)."""
+
+    clouds: Sequence[np.ndarray]
+    frames: Sequence[np.ndarray]
+
+
+_worker: tuple[KeyframeClouds, KeyframeClouds, DetectorSettings] | None = None
+
+
+def _init_worker(queries: KeyframeClouds, database: KeyframeClouds | None, settings: DetectorSettings) -> None:
+    global _worker
+    # the rule without its fitness threshold: fitness is swept afterwards
+    _worker = (queries, database or queries, DetectorSettings(**{**settings.__dict__, "min_fitness": 0.0}))
+
+
+def _verify(task: tuple[int, int]) -> tuple[float, str | None, np.ndarray]:
+    assert _worker is not None
+    queries, database, settings = _worker
+    query, match = task
+    check = verify_loop(queries.clouds[query], database.clouds[match],
+                        voxel_size=settings.verification_voxel, max_threads=1)
+    T, _ = to_sensor_frames(check, queries.frames[query], database.frames[match])
+    return check.fitness, closure_rejection(check, T, settings), T
+
+
+def verify_candidates(queries: KeyframeClouds, database: KeyframeClouds | None, candidates: Candidates,
+                      settings: DetectorSettings, *, workers: int | None = None, progress: bool = True,
+                      description: str = "verifying") -> VerifiedCandidates:
+    """Register every candidate as the node does; ``database`` None: the queries' own (P1)."""
+    n, k = candidates.indices.shape
+    fitness = np.full((n, k), np.nan)
+    rejection = np.full((n, k), "no candidate", dtype=object)
+    transforms = np.full((n, k, 4, 4), np.nan)
+    slots = [(q, r) for q in range(n) for r in range(k) if candidates.indices[q, r] >= 0]
+    tasks = [(q, int(candidates.indices[q, r])) for q, r in slots]
+    workers = default_workers() if workers is None else workers
+    bar = tqdm(total=len(tasks), desc=description, unit="pair", disable=not progress, leave=False)
+    try:
+        if workers <= 1:
+            _init_worker(queries, database, settings)
+            results = map(_verify, tasks)
+            for (q, r), (f, why, T) in zip(slots, results):
+                fitness[q, r], rejection[q, r], transforms[q, r] = f, why, T
+                bar.update()
+        else:
+            with ProcessPoolExecutor(workers, initializer=_init_worker,
+                                     initargs=(queries, database, settings)) as pool:
+                for (q, r), (f, why, T) in zip(slots, bounded_map(pool, _verify, tasks, 8 * workers)):
+                    fitness[q, r], rejection[q, r], transforms[q, r] = f, why, T
+                    bar.update()
+    finally:
+        bar.close()
+    return VerifiedCandidates(fitness, rejection, transforms)
+
+
+def best_verified(candidates: Candidates, verified: VerifiedCandidates) -> tuple[np.ndarray, np.ndarray]:
+    """Per query the accepted candidate of highest fitness: ``(indices (n, 1), 1 - fitness (n, 1))``
+    — a distance (lower = better) for the retrieval metrics; -1 / inf where none was accepted."""
+    ok = verified.accepted_at(0.0)
+    fitness = np.where(ok, verified.fitness, -np.inf)
+    best = np.argmax(fitness, axis=1)
+    rows = np.arange(len(best))
+    found = np.isfinite(fitness[rows, best])
+    indices = np.where(found, candidates.indices[rows, best], -1)[:, None]
+    return indices, np.where(found, 1.0 - fitness[rows, best], np.inf)[:, None]
+
+
+def node_decision(candidates: Candidates, verified: VerifiedCandidates, distance_threshold: float,
+                  min_fitness: float, top_k: int) -> tuple[np.ndarray, np.ndarray]:
+    """What the node publishes per query: the first of its ``top_k`` candidates within
+    ``distance_threshold`` that the rule accepts at ``min_fitness``; ``(indices (n, 1), 0 or inf)``."""
+    ok = verified.accepted_at(min_fitness)[:, :top_k] & (candidates.distances[:, :top_k] <= distance_threshold)
+    first = np.argmax(ok, axis=1)
+    found = ok.any(axis=1)
+    indices = np.where(found, candidates.indices[np.arange(len(first)), first], -1)[:, None]
+    return indices, np.where(found, 0.0, np.inf)[:, None]
+
+
+@dataclass(frozen=True)
+class OperatingPoint:
+    """One acceptance rule's result: what was published and how much of it was right."""
+
+    accepted: int
+    precision: float  # NaN when nothing was accepted
+    recall: float  # NaN without revisits
+
+    @property
+    def f1(self) -> float:
+        p, r = self.precision, self.recall
+        return 2 * p * r / (p + r) if p + r > 0 else 0.0
+
+    def summary(self) -> dict[str, float]:
+        return {"accepted": self.accepted, "precision": self.precision, "recall": self.recall,
+                "f1": self.f1}
+
+
+def operating_point(metrics: RetrievalMetrics, accepted: int) -> OperatingPoint:
+    """The single point of ``metrics`` computed from a 0 / inf decision (:func:`node_decision`)."""
+    curve = metrics.pr
+    if len(curve.thresholds) == 0:
+        return OperatingPoint(accepted, math.nan, 0.0 if metrics.num_revisits else math.nan)
+    return OperatingPoint(accepted, float(curve.precision[-1]), float(curve.recall[-1]))

@@ -1,0 +1,154 @@
+"""``vbrl eval --verify``: the verified output of the full model and of Scan Context, side by side.
+
+Both methods' top-k go through the node's own verification
+(:mod:`vbrl_ros.evaluation.verified`); the verified closures are scored by the same protocol
+as retrieval, swept over fitness and at the node's settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from dataclasses import dataclass, field
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from vbrl_ros.detection.settings import DetectorSettings, SettingsError
+from vbrl_ros.evaluation.methods import ScanContextMethod, SourceDescriptors
+from vbrl_ros.evaluation.metrics import RetrievalMetrics
+from vbrl_ros.evaluation.retrieval import RetrievalResults
+from vbrl_ros.model.model_file import VBRLModel
+from vbrl_ros.tools.evaluate_output import cell
+from vbrl_ros.training.ablations import FULL_NAME
+from vbrl_ros.evaluation.verified import (
+    Candidates,
+    OperatingPoint,
+    VerifiedCandidates,
+    best_verified,
+    node_decision,
+    operating_point,
+    verify_candidates,
+)
+
+VERIFIED_SUFFIX = ", verified"
+SCAN_CONTEXT = ScanContextMethod.name
+
+
+@dataclass
+class VerifiedOutputs:
+    """Per method: the operating point at the node's settings (by radius), the distance
+    threshold it used, and the best verified candidate per query (for the matches dump)."""
+
+    settings: DetectorSettings
+    points: dict[str, dict[float, OperatingPoint]] = field(default_factory=dict)
+    thresholds: dict[str, float] = field(default_factory=dict)
+    best: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
+    checked: dict[str, tuple[Candidates, VerifiedCandidates]] = field(default_factory=dict)
+
+    def summary(self, metrics: dict[str, dict[float, RetrievalMetrics]]) -> dict[str, Any]:
+        return {
+            "settings": {"top_k": self.settings.top_k, "min_fitness": self.settings.min_fitness,
+                         "max_closure_distance": self.settings.max_closure_distance,
+                         "verification_voxel": self.settings.verification_voxel},
+            "distance_threshold": self.thresholds,
+            "fitness_at_max_f1": {name: {f"{r:g}": 1.0 - m.threshold_at_max_f1 for r, m in by_r.items()}
+                                  for name, by_r in metrics.items() if name.endswith(VERIFIED_SUFFIX)},
+            "at_node_settings": {name: {f"{r:g}": p.summary() for r, p in by_r.items()}
+                                 for name, by_r in self.points.items()},
+        }
+
+
+def check_arguments(args: argparse.Namespace) -> None:
+    if args.distance_threshold is not None and not (math.isfinite(args.distance_threshold)
+                                                    and args.distance_threshold >= 0):
+        raise ValueError("--distance-threshold must be a number >= 0")
+    settings(args)  # the detector's own checks name the setting
+
+
+def settings(args: argparse.Namespace) -> DetectorSettings:
+    """The node's acceptance rule from the options; a bad one is named with the detector's rule."""
+    options = {"top_k": ("--verify-top-k", args.verify_top_k), "min_fitness": ("--min-fitness", args.min_fitness),
+               "max_closure_distance": ("--max-closure-distance", args.max_closure_distance)}
+    for name, (option, value) in options.items():
+        try:
+            DetectorSettings(**{name: value})
+        except SettingsError as error:
+            raise ValueError(f"{option}: {error}") from None
+    return DetectorSettings(**{name: value for name, (_, value) in options.items()})
+
+
+Score = Callable[[RetrievalResults], dict[float, RetrievalMetrics]]
+
+
+def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, database: SourceDescriptors,
+                   model: VBRLModel, score: Score, metrics: dict[str, dict[float, RetrievalMetrics]],
+                   retrieved: dict[str, tuple[Any, RetrievalResults]]) -> VerifiedOutputs:
+    """Verify the full ``model``'s and Scan Context's candidates; adds a ``"<method>, verified"``
+    row (swept over fitness) to ``metrics`` for each. ``database`` is ``queries`` for P1;
+    ``score``: the protocol's metrics at every radius."""
+    rule = settings(args)
+    outputs = VerifiedOutputs(rule)
+    for name, (method, results) in retrieved.items():
+        if name not in (FULL_NAME, SCAN_CONTEXT):
+            continue  # ablations: retrieval only
+        k = min(rule.top_k, results.k)
+        candidates = Candidates(results.indices[:, :k], results.distances[:, :k])
+        verified = verify_candidates(queries.clouds, None if database is queries else database.clouds,
+                                     candidates, rule, workers=args.workers, progress=not args.quiet,
+                                     description=f"verifying {name}")
+        outputs.checked[name] = (candidates, verified)
+        indices, distances = best_verified(candidates, verified)
+        metrics[name + VERIFIED_SUFFIX] = score(RetrievalResults(indices, distances, results.database_limit))
+        fallback = candidates.indices[:, 0]  # no verified candidate: retrieval's own top-1
+        rows = np.arange(len(indices))
+        position = np.argmax(candidates.indices == indices, axis=1)
+        fitness = verified.fitness[rows, position]
+        outputs.best[name] = (np.where(indices[:, 0] >= 0, indices[:, 0], fallback),
+                              np.where(indices[:, 0] >= 0, candidates.distances[rows, position],
+                                       candidates.distances[:, 0]),
+                              np.where(indices[:, 0] >= 0, fitness, math.nan))
+        # as the node: with verification, no distance threshold unless one is given
+        threshold = args.distance_threshold if name == FULL_NAME and args.distance_threshold else math.inf
+        decided, decision = node_decision(candidates, verified, threshold, rule.min_fitness, k)
+        point = score(RetrievalResults(decided, decision, results.database_limit))
+        accepted = int(np.isfinite(decision).sum())
+        outputs.points[name] = {r: operating_point(m, accepted) for r, m in point.items()}
+        outputs.thresholds[name] = threshold
+    return outputs
+
+
+def format_points(outputs: VerifiedOutputs, radii: list[float]) -> str:
+    rule = outputs.settings
+    lines = [f"at the node's settings (top {rule.top_k}, min_fitness {rule.min_fitness:g}, "
+             f"max_closure_distance {rule.max_closure_distance:g} m)"]
+    for r in radii:
+        lines.append(f"radius {r:g} m")
+        lines.append(f"  {'method':<24s} {'accepted':>8s} {'precision':>9s} {'recall':>7s} {'F1':>7s}")
+        for name, by_radius in outputs.points.items():
+            p = by_radius[r]
+            lines.append(f"  {name:<24s} {p.accepted:>8d} {cell(p.precision, 9)} {cell(p.recall)} "
+                         f"{cell(p.f1)}")
+    return "\n".join(lines)
+
+
+def matches_entries(outputs: VerifiedOutputs, name: str, database_limit: np.ndarray) -> list[dict[str, Any]]:
+    """``[{"query", "match", "distance", "fitness", ...}]`` of the best verified candidate (fitness
+    NaN when none was verified: match and distance are then retrieval's top-1), and every
+    verified candidate with its fitness and the rule's verdict (null: accepted at fitness 0)."""
+    match, distance, fitness = outputs.best[name]
+    candidates, verified = outputs.checked[name]
+    entries = []
+    for q in np.flatnonzero(database_limit > 0):
+        listed = candidates.indices[q] >= 0
+        entries.append({
+            "query": int(q), "match": int(match[q]),
+            "distance": float(distance[q]) if math.isfinite(distance[q]) else None,
+            "fitness": float(fitness[q]),
+            "candidates": [int(j) for j in candidates.indices[q][listed]],
+            "candidate_distances": [float(d) for d in candidates.distances[q][listed]],
+            "candidate_fitness": [float(f) for f in verified.fitness[q][listed]],
+            "candidate_rejection": [verified.rejection[q, r] for r in np.flatnonzero(listed)],
+        })
+    return entries
