@@ -23,8 +23,11 @@ GRID_KINDS: tuple[str, ...] = ("cartesian", "polar")
 FRAMES: tuple[str, ...] = ("sensor", "ground")
 #: The paper's five modalities, in descriptor order.
 PAPER_MODALITIES: tuple[str, ...] = ("covariance", "hog_xy", "hog_xz", "hog_yz", "occupancy")
-#: Every modality a descriptor may hold; "height" is the highest point above the voxel's floor.
-MODALITY_NAMES: tuple[str, ...] = (*PAPER_MODALITIES, "height")
+#: Modalities read from the scan's height map: "height", the highest point above the voxel's
+#: floor, and "spectrum", the bird's-eye height image's Fourier magnitude (polar grids only).
+HEIGHT_MAP_MODALITIES: tuple[str, ...] = ("height", "spectrum")
+#: Every modality a descriptor may hold.
+MODALITY_NAMES: tuple[str, ...] = (*PAPER_MODALITIES, *HEIGHT_MAP_MODALITIES)
 
 #: Settings only one kind of grid reads; the other kind must leave them at their
 #: defaults, so that one grid has one dict (and one model identity hash) — see to_dict.
@@ -166,7 +169,8 @@ class VoxelGridConfig:
 @dataclass(frozen=True)
 class FeatureConfig:
     """Per-voxel features: the paper's covariance, three HOG snapshots and subvoxel
-    occupancy, and the highest point above the voxel's floor (``height``).
+    occupancy, the highest point above the voxel's floor (``height``) and, on a polar grid,
+    the bird's-eye height spectrum in each (frequency ring, direction sector) (``spectrum``).
 
     ``modalities`` picks which, in descriptor order (default: the paper's five).
     ``normalise`` scales each modality's block of a descriptor to unit L1 norm, so
@@ -251,6 +255,13 @@ class VBRLConfig:
 
     grid: VoxelGridConfig = field(default_factory=VoxelGridConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
+
+    def __post_init__(self) -> None:
+        _require(
+            "spectrum" not in self.features.modalities or self.grid.kind == "polar",
+            "features.modalities",
+            "'spectrum' needs a polar grid: its rings and sectors are frequency and direction",
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return {"grid": self.grid.to_dict(), "features": self.features.to_dict()}

@@ -188,7 +188,7 @@ def test_new_settings_appear_in_the_dict_and_round_trip():
     config = recognition_config()
     data = config.to_dict()
     assert data["grid"]["frame"] == "ground"
-    assert data["features"]["modalities"] == ["height"] and data["features"]["normalise"] is True
+    assert data["features"]["modalities"] == ["height", "spectrum"] and data["features"]["normalise"] is True
     assert VBRLConfig.from_dict(json.loads(json.dumps(data))) == config
     mixed = VBRLConfig(features=FeatureConfig(modalities=("height", "covariance")))
     assert VBRLConfig.from_dict(mixed.to_dict()) == mixed

@@ -2,9 +2,9 @@
 
 A scan's descriptor is one vector of length d. Its rows are grouped
 modality-major, in the configuration's modality order (the paper's:
-covariance, XY-HOG, XZ-HOG, YZ-HOG, subvoxel occupancy; and ``height``, the
-top of each voxel's points, see :mod:`.height_map`); inside a modality,
-voxel-major.
+covariance, XY-HOG, XZ-HOG, YZ-HOG, subvoxel occupancy; ``height``, the
+top of each voxel's points, see :mod:`.height_map`; ``spectrum``, see
+:mod:`.bev_spectrum`); inside a modality, voxel-major.
 :class:`FeatureLayout` says which voxel and modality each row belongs to —
 the groups of the structured-sparsity norms and of the score.
 
@@ -31,7 +31,8 @@ from functools import cached_property
 
 import numpy as np
 
-from vbrl_ros.config import MODALITY_NAMES, PAPER_MODALITIES, VBRLConfig
+from vbrl_ros.config import HEIGHT_MAP_MODALITIES, MODALITY_NAMES, PAPER_MODALITIES, VBRLConfig
+from vbrl_ros.features.bev_spectrum import SpectrumSampler
 from vbrl_ros.features.height_map import (
     CELL_M,
     MARGIN_M,
@@ -155,7 +156,7 @@ class Featurizer:
         self.grid = make_grid(self.config.grid)
         f = self.config.features
         per_voxel = {"covariance": COVARIANCE_ENTRIES, "hog_xy": f.hog_length, "hog_xz": f.hog_length,
-                     "hog_yz": f.hog_length, "occupancy": OCCUPANCY_BITS, "height": 1}
+                     "hog_yz": f.hog_length, "occupancy": OCCUPANCY_BITS, "height": 1, "spectrum": 1}
         assert set(per_voxel) == set(MODALITY_NAMES)
         self.layout = FeatureLayout(
             n_voxels=self.grid.n_voxels,
@@ -183,7 +184,7 @@ class Featurizer:
         columns ignored); see :meth:`frame` for ``gravity``."""
         points = _as_points(points)
         frame = self.frame(points, gravity)
-        if self.modality_names == ("height",):  # levelled inside the height map's pass
+        if self._height_map_only:  # levelled inside the height map's pass
             return self.describe_views(points, np.zeros((1, 2)), frame)[0]
         return self.describe_framed(points if self.config.grid.frame == "sensor" else frame.apply(points))
 
@@ -197,15 +198,17 @@ class Featurizer:
         ``offsets`` (metres, in the grid's frame), as if the sensor had stood there.
 
         ``points`` are in the grid's frame, or in the sensor frame with their ``frame``
-        (:meth:`frame`). Height-only descriptors read every view from one height map
-        (cheap); others re-run the featurizer on shifted points.
+        (:meth:`frame`). Descriptors of height-map modalities read every view from one height
+        map (cheap; the spectrum, which a translation does not change, is computed once);
+        others re-run the featurizer on shifted points.
         """
         offsets = np.asarray(offsets, dtype=np.float64).reshape(-1, 2)
         points = _as_points(points)
-        if self.modality_names == ("height",):
+        if self._height_map_only:
             cells = self._height_cells(points, frame)
-            return np.stack([self._vector([self._heights(cells, dx, dy)]) for dx, dy in offsets]
-                            ) if len(offsets) else np.zeros((0, self.dimension), np.float32)
+            spectrum = self._spectrum(cells) if "spectrum" in self.modality_names else None
+            return np.stack([self._vector(self._select([], self._heights(cells, dx, dy), spectrum))
+                             for dx, dy in offsets]) if len(offsets) else np.zeros((0, self.dimension), np.float32)
         if frame is not None:
             points = frame.apply(points)
         shift = np.zeros(points.shape[1])
@@ -214,6 +217,21 @@ class Featurizer:
             shift[:2] = dx, dy
             rows.append(self.describe_framed(points - shift))
         return np.stack(rows) if rows else np.zeros((0, self.dimension), np.float32)
+
+    @cached_property
+    def _height_map_only(self) -> bool:
+        return set(self.modality_names) <= set(HEIGHT_MAP_MODALITIES)
+
+    @cached_property
+    def _spectrum_sampler(self) -> SpectrumSampler:
+        return SpectrumSampler(self.config.grid.rings, self.config.grid.sectors)
+
+    def _spectrum(self, cells: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+        """The spectrum block (n_voxels, 1): one spectrum of each layer's bird's-eye image."""
+        xy, height, layer_of = cells
+        sampler = self._spectrum_sampler
+        return np.concatenate([sampler.spectrum(sampler.image(xy[layer_of == layer], height[layer_of == layer]))
+                               for layer in range(self.config.grid.n_layers)])[:, None]
 
     def _vector(self, blocks: list[np.ndarray]) -> np.ndarray:
         parts = [b.ravel() for b in blocks]
@@ -247,9 +265,11 @@ class Featurizer:
         path); ``points`` (N, 3+) in the grid's frame."""
         points = _as_points(points)
         names = self.modality_names
-        heights = self._heights(self._height_cells(points)) if "height" in names else None
+        cells = self._height_cells(points) if set(names) & set(HEIGHT_MAP_MODALITIES) else None
+        heights = self._heights(cells) if "height" in names else None
+        spectrum = self._spectrum(cells) if "spectrum" in names else None
         if not set(names) & set(PAPER_MODALITIES):
-            return [heights]
+            return self._select([], heights, spectrum)
         grid, size = self.grid, self.config.features.raster_size
         if grid.kind == "polar":
             bound_cos, bound_sin = grid.angular_bounds(size)
@@ -263,10 +283,11 @@ class Featurizer:
                 points, float(self.config.grid.extent_xy), self.config.grid.cells_xy,
                 grid.z_edges, grid.z_slope, grid.z_intercept, size,
             )
-        return self._select(self._finish(*accumulated), heights)
+        return self._select(self._finish(*accumulated), heights, spectrum)
 
-    def _select(self, paper: list[np.ndarray], heights: np.ndarray | None) -> list[np.ndarray]:
-        blocks = dict(zip(PAPER_MODALITIES, paper), height=heights)
+    def _select(self, paper: list[np.ndarray], heights: np.ndarray | None,
+                spectrum: np.ndarray | None = None) -> list[np.ndarray]:
+        blocks = dict(zip(PAPER_MODALITIES, paper), height=heights, spectrum=spectrum)
         return [blocks[name] for name in self.modality_names]
 
     def modalities_numpy(self, points: np.ndarray) -> list[np.ndarray]:
@@ -276,7 +297,9 @@ class Featurizer:
         grid, voxel-local) coordinates; everything after is the same.
         """
         points = _as_points(points)
-        return self._select(self._paper_numpy(points), self._heights_numpy(points))
+        # the spectrum has no second implementation: it is numpy already
+        spectrum = self._spectrum(self._height_cells(points)) if "spectrum" in self.modality_names else None
+        return self._select(self._paper_numpy(points), self._heights_numpy(points), spectrum)
 
     def _heights_numpy(self, points: np.ndarray) -> np.ndarray:
         """The height block from first principles: every map column's top, its centre
