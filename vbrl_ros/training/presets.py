@@ -1,9 +1,9 @@
 """Named descriptors ``vbrl train --descriptor`` offers: the paper's and the recognition one.
 
 The recognition descriptor is what the built-in model uses (docs/design.md §6): scans
-levelled on their own ground, the height modality on a 20 ring x 30 sector polar grid
-(2 m x 12 degrees, 40 m), each descriptor normalised to unit L1, and queries also
-described from viewpoints 1.5 m around the sensor (translation search).
+levelled on their own ground, the height and spectrum modalities on a 20 ring x 30 sector
+polar grid (2 m x 12 degrees, 40 m), each modality's block normalised to unit L1, and
+queries also described from viewpoints 1.5 m around the sensor (translation search).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from vbrl_ros.config import FeatureConfig, VBRLConfig, VoxelGridConfig
 DESCRIPTORS = ("paper", "recognition")
 RECOGNITION_GRID = dict(kind="polar", rings=20, sectors=30, max_range=40.0, z_edges=(0.0, 20.0),
                         frame="ground")
-RECOGNITION_FEATURES = FeatureConfig(modalities=("height",), min_points=1, normalise=True)
+RECOGNITION_FEATURES = FeatureConfig(modalities=("height", "spectrum"), min_points=1, normalise=True)
 RECOGNITION_TRANSLATION_SEARCH_M = 1.5
 
 
