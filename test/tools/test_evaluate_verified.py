@@ -38,21 +38,24 @@ def verified(tmp_path_factory) -> tuple[dict, list[dict], Path, str]:
     text = io.StringIO()
     with contextlib.redirect_stdout(text):
         assert vbrl("eval", source, "--verify", "--exclude", EXCLUDE, "--json", out, "--dump-matches", dump,
-                    "--no-ablations", "--quiet", "--workers", "2") == 0
+                    "--no-ablations", "--quiet", "--workers", "2", "--min-fitness", "0.2", "0.1") == 0
     return json.loads(out.read_text()), json.loads(dump.read_text()), source, text.getvalue()
 
 
 def test_verified_rows_beside_retrieval_for_both_methods(verified):
     report, _, _, text = verified
     assert report["methods"] == ["VBRL", "Scan Context", "VBRL, verified", "Scan Context, verified"]
-    assert "at the node's settings (top 3, min_fitness 0.2" in text
+    assert "at the node's settings (top 3, min_fitness 0.2, 0.1," in text
     points = report["verified"]["at_node_settings"]
     assert set(points) == {"VBRL", "Scan Context"}
     # simulated revisits, reversed on the other lane: what the node publishes is right and plenty
-    at_5m = points["VBRL"]["5"]
+    at_5m = points["VBRL"]["0.2"]["5"]
     assert at_5m["precision"] >= 0.95 and at_5m["recall"] >= 0.5, at_5m
     assert report["metrics"]["VBRL, verified"]["5"]["max_f1"] >= 0.7
     assert report["verified"]["settings"]["top_k"] == 3
+    # a lower threshold publishes at least as much, and nothing it kept before is lost
+    assert points["VBRL"]["0.1"]["5"]["accepted"] >= at_5m["accepted"]
+    assert points["VBRL"]["0.1"]["5"]["recall"] >= at_5m["recall"]
 
 
 def test_the_dump_names_the_best_verified_candidate_and_recomputes_the_swept_metrics(verified):

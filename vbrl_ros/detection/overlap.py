@@ -1,10 +1,10 @@
 """Evidence that a registered loop closure is real: do the two clouds agree, and does their
 structure pin the position down at all?
 
-KISS-ICP's inlier fraction at its final gate (one voxel) is a weak test: on real recordings
-unrelated places reach 0.7-0.8 of it, as many true revisits do. Two measurements separate
-them far better (measured on the shared recordings, candidates of the recogniser and of
-Scan Context alike):
+KISS-ICP's inlier fraction at its final gate (one voxel) is a weak test: one-voxel clouds of
+unrelated places lie within a voxel of each other almost everywhere, so on real recordings
+many false candidates scored as high as true revisits. Two measurements separate them far
+better (measured on real recordings, candidates of the recogniser and of Scan Context alike):
 
 * **overlap** — after alignment, the share of each cloud's structure (ground left out) that
   lies within ``OVERLAP_DISTANCE`` voxels of the other cloud; the smaller of the two shares.

@@ -22,6 +22,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
+from scipy import fft
 from scipy.ndimage import map_coordinates
 
 CELL_M = 0.5  # image cell: finer than the nearest structure a revisit must match
@@ -37,29 +39,39 @@ class SpectrumSampler:
     def __init__(self, rings: int, sectors: int) -> None:
         self.rings, self.sectors = rings, sectors
         self.size = int(round(2 * EXTENT_M / CELL_M))
-        centre = self.size // 2  # where np.fft.fftshift puts frequency 0
         nyquist = self.size / 2  # in frequency bins
         offsets = (np.arange(SAMPLES) + 0.5) / SAMPLES
-        radius = (np.arange(rings)[:, None] + offsets[None, :]).ravel() / rings * nyquist
-        angle = (np.arange(sectors)[:, None] + offsets[None, :]).ravel() * (2 * math.pi / sectors)
-        r = radius.reshape(rings, SAMPLES)[:, None, :, None]
-        a = angle.reshape(sectors, SAMPLES)[None, :, None, :]
-        # row = y frequency, column = x frequency (the image is indexed [y, x])
-        self.coordinates = np.stack([np.broadcast_to(centre + r * np.sin(a), (rings, sectors, SAMPLES, SAMPLES)),
-                                     np.broadcast_to(centre + r * np.cos(a), (rings, sectors, SAMPLES, SAMPLES))])
+        radius = ((np.arange(rings)[:, None] + offsets[None, :]) / rings * nyquist)[:, None, :, None]
+        angle = ((np.arange(sectors)[:, None] + offsets[None, :]) * (2 * math.pi / sectors))[None, :, None, :]
+        shape = (rings, sectors, SAMPLES, SAMPLES)
+        fy = np.broadcast_to(radius * np.sin(angle), shape).ravel()  # y frequency: image rows
+        fx = np.broadcast_to(radius * np.cos(angle), shape).ravel()
+        # a real image's spectrum is symmetric, |F(-k)| = |F(k)|: read every sample in the
+        # half plane fx >= 0 that rfft2 computes, its rows shifted so that fy = 0 is the centre
+        flip = fx < 0
+        fy, fx = np.where(flip, -fy, fy), np.abs(fx)
+        self.coordinates = np.stack([self.size // 2 + fy, fx])
         window = np.hanning(self.size)
         self.window = np.outer(window, window)
 
     def image(self, xy: np.ndarray, height: np.ndarray) -> np.ndarray:
         """The top height of every cell of (N, 2) points ``xy`` (sensor at the centre)."""
-        image = np.zeros((self.size, self.size))
-        ij = np.floor((xy + EXTENT_M) / CELL_M).astype(np.int64)
-        inside = np.all((ij >= 0) & (ij < self.size), axis=1)
-        np.maximum.at(image, (ij[inside, 1], ij[inside, 0]), height[inside])
-        return image
+        return _top_image(np.ascontiguousarray(xy, dtype=np.float64), np.ascontiguousarray(height, dtype=np.float64),
+                          self.size, EXTENT_M, CELL_M)
 
     def spectrum(self, image: np.ndarray) -> np.ndarray:
         """(rings * sectors,) mean log-magnitude of every (ring, sector) bin, ring-major."""
-        magnitude = np.log1p(np.abs(np.fft.fftshift(np.fft.fft2(image * self.window))))
-        samples = map_coordinates(magnitude, self.coordinates.reshape(2, -1), order=1, mode="nearest")
+        half = np.fft.fftshift(fft.rfft2(image * self.window, workers=1), axes=0)
+        samples = map_coordinates(np.log1p(np.abs(half)), self.coordinates, order=1, mode="nearest")
         return samples.reshape(self.rings, self.sectors, SAMPLES * SAMPLES).mean(axis=2).ravel()
+
+
+@njit(cache=True, nogil=True)
+def _top_image(xy, height, size, extent, cell):
+    image = np.zeros((size, size))
+    for k in range(xy.shape[0]):
+        i = int(np.floor((xy[k, 0] + extent) / cell))
+        j = int(np.floor((xy[k, 1] + extent) / cell))
+        if 0 <= i < size and 0 <= j < size and height[k] > image[j, i]:
+            image[j, i] = height[k]
+    return image

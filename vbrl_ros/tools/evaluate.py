@@ -108,8 +108,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     verify.add_argument("--verify", action="store_true", help="evaluate the verified output too")
     verify.add_argument("--verify-top-k", type=int, default=DETECTOR_DEFAULTS.top_k, metavar="K",
                         help="candidates verified per query, as the node's top_k")
-    verify.add_argument("--min-fitness", type=float, default=DETECTOR_DEFAULTS.min_fitness,
-                        help="the node's min_fitness, for the operating point")
+    verify.add_argument("--min-fitness", type=float, nargs="+", default=[DETECTOR_DEFAULTS.min_fitness],
+                        metavar="F", help="the node's min_fitness: an operating point for each value")
     verify.add_argument("--distance-threshold", type=float, default=None, metavar="D",
                         help="VBRL: verify only candidates at or below this distance, for the "
                              "operating point (default: every one of the top-k, as the node)")

@@ -38,25 +38,27 @@ SCAN_CONTEXT = ScanContextMethod.name
 
 @dataclass
 class VerifiedOutputs:
-    """Per method: the operating point at the node's settings (by radius), the distance
-    threshold it used, and the best verified candidate per query (for the matches dump)."""
+    """Per method: the operating points at the node's settings (by min_fitness, then radius), the
+    distance threshold it used, and the best verified candidate per query (for the matches dump)."""
 
     settings: DetectorSettings
-    points: dict[str, dict[float, OperatingPoint]] = field(default_factory=dict)
+    min_fitness: tuple[float, ...]
+    points: dict[str, dict[float, dict[float, OperatingPoint]]] = field(default_factory=dict)
     thresholds: dict[str, float] = field(default_factory=dict)
     best: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
     checked: dict[str, tuple[Candidates, VerifiedCandidates]] = field(default_factory=dict)
 
     def summary(self, metrics: dict[str, dict[float, RetrievalMetrics]]) -> dict[str, Any]:
         return {
-            "settings": {"top_k": self.settings.top_k, "min_fitness": self.settings.min_fitness,
+            "settings": {"top_k": self.settings.top_k, "min_fitness": list(self.min_fitness),
                          "max_closure_distance": self.settings.max_closure_distance,
                          "verification_voxel": self.settings.verification_voxel},
             "distance_threshold": self.thresholds,
             "fitness_at_max_f1": {name: {f"{r:g}": 1.0 - m.threshold_at_max_f1 for r, m in by_r.items()}
                                   for name, by_r in metrics.items() if name.endswith(VERIFIED_SUFFIX)},
-            "at_node_settings": {name: {f"{r:g}": p.summary() for r, p in by_r.items()}
-                                 for name, by_r in self.points.items()},
+            "at_node_settings": {name: {f"{f:g}": {f"{r:g}": p.summary() for r, p in by_r.items()}
+                                        for f, by_r in by_fitness.items()}
+                                 for name, by_fitness in self.points.items()},
         }
 
 
@@ -64,12 +66,13 @@ def check_arguments(args: argparse.Namespace) -> None:
     if args.distance_threshold is not None and not (math.isfinite(args.distance_threshold)
                                                     and args.distance_threshold >= 0):
         raise ValueError("--distance-threshold must be a number >= 0")
-    settings(args)  # the detector's own checks name the setting
+    for fitness in args.min_fitness:
+        settings(args, fitness)  # the detector's own checks name the setting
 
 
-def settings(args: argparse.Namespace) -> DetectorSettings:
+def settings(args: argparse.Namespace, min_fitness: float) -> DetectorSettings:
     """The node's acceptance rule from the options; a bad one is named with the detector's rule."""
-    options = {"top_k": ("--verify-top-k", args.verify_top_k), "min_fitness": ("--min-fitness", args.min_fitness),
+    options = {"top_k": ("--verify-top-k", args.verify_top_k), "min_fitness": ("--min-fitness", min_fitness),
                "max_closure_distance": ("--max-closure-distance", args.max_closure_distance)}
     for name, (option, value) in options.items():
         try:
@@ -88,8 +91,8 @@ def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, databas
     """Verify the full ``model``'s and Scan Context's candidates; adds a ``"<method>, verified"``
     row (swept over fitness) to ``metrics`` for each. ``database`` is ``queries`` for P1;
     ``score``: the protocol's metrics at every radius."""
-    rule = settings(args)
-    outputs = VerifiedOutputs(rule)
+    rule = settings(args, args.min_fitness[0])
+    outputs = VerifiedOutputs(rule, tuple(args.min_fitness))
     for name, (method, results) in retrieved.items():
         if name not in (FULL_NAME, SCAN_CONTEXT):
             continue  # ablations: retrieval only
@@ -111,25 +114,30 @@ def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, databas
                               np.where(indices[:, 0] >= 0, fitness, math.nan))
         # as the node: with verification, no distance threshold unless one is given
         threshold = args.distance_threshold if name == FULL_NAME and args.distance_threshold else math.inf
-        decided, decision = node_decision(candidates, verified, threshold, rule.min_fitness, k)
-        point = score(RetrievalResults(decided, decision, results.database_limit))
-        accepted = int(np.isfinite(decision).sum())
-        outputs.points[name] = {r: operating_point(m, accepted) for r, m in point.items()}
+        outputs.points[name] = {}
+        for min_fitness in outputs.min_fitness:
+            decided, decision = node_decision(candidates, verified, threshold, min_fitness, k)
+            point = score(RetrievalResults(decided, decision, results.database_limit))
+            accepted = int(np.isfinite(decision).sum())
+            outputs.points[name][min_fitness] = {r: operating_point(m, accepted) for r, m in point.items()}
         outputs.thresholds[name] = threshold
     return outputs
 
 
 def format_points(outputs: VerifiedOutputs, radii: list[float]) -> str:
     rule = outputs.settings
-    lines = [f"at the node's settings (top {rule.top_k}, min_fitness {rule.min_fitness:g}, "
+    fitness = ", ".join(f"{f:g}" for f in outputs.min_fitness)
+    lines = [f"at the node's settings (top {rule.top_k}, min_fitness {fitness}, "
              f"max_closure_distance {rule.max_closure_distance:g} m)"]
     for r in radii:
         lines.append(f"radius {r:g} m")
-        lines.append(f"  {'method':<24s} {'accepted':>8s} {'precision':>9s} {'recall':>7s} {'F1':>7s}")
-        for name, by_radius in outputs.points.items():
-            p = by_radius[r]
-            lines.append(f"  {name:<24s} {p.accepted:>8d} {cell(p.precision, 9)} {cell(p.recall)} "
-                         f"{cell(p.f1)}")
+        lines.append(f"  {'method':<24s} {'min_fitness':>11s} {'accepted':>8s} {'precision':>9s} {'recall':>7s} "
+                     f"{'F1':>7s}")
+        for name, by_fitness in outputs.points.items():
+            for min_fitness, by_radius in by_fitness.items():
+                p = by_radius[r]
+                lines.append(f"  {name:<24s} {min_fitness:>11g} {p.accepted:>8d} {cell(p.precision, 9)} "
+                             f"{cell(p.recall)} {cell(p.f1)}")
     return "\n".join(lines)
 
 
