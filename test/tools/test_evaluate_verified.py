@@ -45,7 +45,7 @@ def verified(tmp_path_factory) -> tuple[dict, list[dict], Path, str]:
 def test_verified_rows_beside_retrieval_for_both_methods(verified):
     report, _, _, text = verified
     assert report["methods"] == ["VBRL", "Scan Context", "VBRL, verified", "Scan Context, verified"]
-    assert "at the node's settings (top 3, min_fitness 0.2, 0.1," in text
+    assert "at the node's settings (top 3, min_fitness 0.1, 0.2," in text
     points = report["verified"]["at_node_settings"]
     assert set(points) == {"VBRL", "Scan Context"}
     # simulated revisits, reversed on the other lane: what the node publishes is right and plenty

@@ -92,7 +92,7 @@ def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, databas
     row (swept over fitness) to ``metrics`` for each. ``database`` is ``queries`` for P1;
     ``score``: the protocol's metrics at every radius."""
     rule = settings(args, args.min_fitness[0])
-    outputs = VerifiedOutputs(rule, tuple(args.min_fitness))
+    outputs = VerifiedOutputs(rule, tuple(sorted(set(args.min_fitness))))
     for name, (method, results) in retrieved.items():
         if name not in (FULL_NAME, SCAN_CONTEXT):
             continue  # ablations: retrieval only
