@@ -68,7 +68,7 @@ class VbrlNode(Node):
         s = self.settings
         self.model = load_model(s.model_path) if s.model_path else load_default_model()
         self.database = self._open_database()
-        session = s.session_id if s.session_id >= 0 else self._next_session()
+        session = s.session_id if s.session_id >= 0 else self.database.next_session()
         self.detector = LoopClosureDetector(self.model, self.database,
                                             replace(s.detector, session=str(session)))
         self.session = session
@@ -136,10 +136,6 @@ class VbrlNode(Node):
             # a saved database keeps its own storage type (and refuses another prune)
             return KeyframeDatabase.load(path, scorer, model_id)
         return KeyframeDatabase(scorer, model_id, IndexParameters(storage=self.settings.descriptor_storage))
-
-    def _next_session(self) -> int:
-        numeric = [int(name) for name in self.database.sessions if name.isdigit()]
-        return max(numeric, default=-1) + 1
 
     # -- callbacks (executor thread): cheap ------------------------------------
 
