@@ -12,6 +12,7 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
@@ -179,3 +180,58 @@ def test_bad_input_load_services_and_sigterm(tmp_path: Path):
         probe.destroy_node()
     assert node.returncode == 0, output
     assert "saved 1 keyframes" in output  # SIGTERM saved the database
+
+
+def odometry(x: float, quaternion=(0.0, 0.0, 0.0, 1.0)) -> Odometry:
+    msg = Odometry()
+    msg.pose.pose.position.x = x
+    o = msg.pose.pose.orientation
+    o.x, o.y, o.z, o.w = quaternion
+    return msg
+
+
+def test_bad_odometry_is_counted_and_skipped_and_keyframing_goes_on():
+    with ros_context() as context:
+        env = isolated_ros_env(context.get_domain_id())
+        probe = rclpy.create_node("probe", context=context)
+        collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
+        clouds = probe.create_publisher(PointCloud2, "/points", 10)
+        odom = probe.create_publisher(Odometry, "/odom", 10)
+        node = subprocess.Popen(node_command("odom_topic:=/odom", "keyframe_distance:=1.0", "diagnostics_period:=0.2"),
+                                env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        sent = {"odometry": 0}
+
+        def move(msg: Odometry) -> None:
+            odom.publish(msg)
+            sent["odometry"] += 1
+            assert collector.spin_until(lambda: stats(collector)["odometry_received"] >= sent["odometry"], 20), \
+                "odometry not taken in (node dead?)"
+
+        def keyframe(stamp: float, expected: int) -> None:
+            clouds.publish(scan(stamp, int(stamp)))
+            assert collector.spin_until(lambda: stats(collector)["keyframes_processed"] >= expected, 30), \
+                f"no keyframe {expected} at {stamp} s: {stats(collector)}"
+
+        try:
+            assert collector.wait_for({"/diagnostics": 1}, timeout=30), "node did not come up"
+            assert collector.spin_until(lambda: odom.get_subscription_count() > 0
+                                        and clouds.get_subscription_count() > 0, 20)
+            move(odometry(0.0))
+            keyframe(1.0, 1)
+            move(odometry(float("nan")))  # a NaN position must not stop every later keyframe
+            move(odometry(2.0))
+            keyframe(2.0, 2)
+            move(odometry(3.0, (0.0, 0.0, 0.0, 0.0)))  # zero quaternion
+            move(odometry(3.0, (0.0, float("nan"), 0.0, 1.0)))
+            move(odometry(4.0))
+            keyframe(3.0, 3)
+            s = latest(collector)
+            assert (s["odometry_received"], s["bad_odometry"]) == (6, 3)
+            assert s["scans_between_keyframes"] == s["processing_errors"] == 0
+            assert node.poll() is None
+        finally:
+            node.send_signal(signal.SIGTERM)
+            output, _ = node.communicate(timeout=60)
+        probe.destroy_node()
+    assert node.returncode == 0, output
+    assert "odometry skipped: position (nan, 0.0, 0.0) is not finite" in output

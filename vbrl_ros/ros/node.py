@@ -43,22 +43,13 @@ from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
 from vbrl_ros.model.builtin import load_default_model
 from vbrl_ros.model.model_file import ModelFileError, load_model
 from vbrl_ros.ros.messages import closures_message, lio_sam_message
+from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, pose_matrix
 from vbrl_ros.ros.outputs import NodeStats, diagnostics_status, keyframe_markers
 from vbrl_ros.ros.settings import DESCRIPTIONS, NodeSettings, unknown_parameters, yaml_value
 
 
 def stamp_seconds(stamp) -> float:
     return stamp.sec + 1e-9 * stamp.nanosec
-
-
-def pose_matrix(odom: Odometry) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    p, q = odom.pose.pose.position, odom.pose.pose.orientation
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-    T[:3, 3] = [p.x, p.y, p.z]
-    return T
 
 
 class VbrlNode(Node):
@@ -79,9 +70,7 @@ class VbrlNode(Node):
         self._mailbox = threading.Condition()
         self._pending: tuple[np.ndarray, float, np.ndarray | None, float] | None = None
         self._stopping = False
-        self._last_keyframe: tuple[float, np.ndarray | None] | None = None
-        self._latest_odom: np.ndarray | None = None
-        self._travel = 0.0
+        self._spacing = KeyframeSpacing(s.keyframe_distance, s.keyframe_interval)
         self._edges: deque[tuple[int, int]] = deque(maxlen=10_000)
         self._keyframes_since_save = 0
 
@@ -140,16 +129,21 @@ class VbrlNode(Node):
     # -- callbacks (executor thread): cheap ------------------------------------
 
     def _on_odom(self, msg: Odometry) -> None:
-        pose = pose_matrix(msg)
-        if self._latest_odom is not None:
-            self._travel += float(np.linalg.norm(pose[:3, 3] - self._latest_odom[:3, 3]))
-        self._latest_odom = pose
+        self.stats.odometry += 1
+        try:
+            pose = pose_matrix(msg)
+        except OdometryError as error:
+            self.stats.bad_odometry += 1
+            self.get_logger().warning(f"odometry skipped: {error}", throttle_duration_sec=5.0)
+            return
+        self._spacing.moved_to(pose)
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         now = time.monotonic()
         self.stats.received(now)
         stamp = stamp_seconds(msg.header.stamp)
-        if not self._is_keyframe(stamp):
+        if not self._spacing.is_keyframe(stamp):
+            self.stats.between_keyframes += 1
             return
         # Decode here, not in the worker: every bad message is then counted as
         # what it is (instead of vanishing as a "drop" from the mailbox) and
@@ -164,26 +158,12 @@ class VbrlNode(Node):
             self.stats.empty += 1
             self.get_logger().warning("PointCloud2 without finite points skipped", throttle_duration_sec=5.0)
             return
-        self._mark_keyframe(stamp)
+        self._spacing.mark(stamp)
         with self._mailbox:
             if self._pending is not None:
                 self.stats.dropped += 1  # the worker is behind: keep the newest keyframe only
-            self._pending = (points, stamp, self._latest_odom, now)
+            self._pending = (points, stamp, self._spacing.latest_pose, now)
             self._mailbox.notify()
-
-    def _is_keyframe(self, stamp: float) -> bool:
-        """Keyframe every keyframe_distance of odometry travel, else every keyframe_interval."""
-        last = self._last_keyframe
-        if last is None:
-            return True
-        if self._latest_odom is not None and last[1] is not None:
-            return self._travel >= self.settings.keyframe_distance
-        return stamp - last[0] >= self.settings.keyframe_interval or stamp < last[0]
-
-    def _mark_keyframe(self, stamp: float) -> None:
-        """A valid scan became a keyframe: spacing now counts from it."""
-        self._last_keyframe = (stamp, self._latest_odom)
-        self._travel = 0.0
 
     # -- worker thread: the real work ------------------------------------------
 
