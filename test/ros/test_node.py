@@ -5,6 +5,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -235,3 +236,67 @@ def test_bad_odometry_is_counted_and_skipped_and_keyframing_goes_on():
         probe.destroy_node()
     assert node.returncode == 0, output
     assert "odometry skipped: position (nan, 0.0, 0.0) is not finite" in output
+
+
+def large_database(path: Path, keyframes: int = 1000):
+    """A database of the built-in model big enough (~25 MB) that a save takes a while; a loader of it."""
+    from vbrl_ros.detection.database import KeyframeDatabase
+    from vbrl_ros.model.builtin import load_default_model
+    from vbrl_ros.ros.settings import NodeSettings
+
+    model = load_default_model()
+    scorer = model.scorer(prune=NodeSettings().weight_prune)
+    db = KeyframeDatabase(scorer, model.identity())
+    rng = np.random.default_rng(0)
+    for k in range(keyframes):
+        db.add(rng.normal(size=db.n_active).astype(np.float32), float(k), "0",
+               cloud=rng.uniform(-40, 40, (2000, 3)))
+    db.save(path)
+    return lambda: KeyframeDatabase.load(path, scorer, model.identity())
+
+
+def test_kill_9_mid_save_keeps_the_database_and_the_next_start_removes_the_leftovers(tmp_path):
+    database = tmp_path / "keyframes.npz"
+    load = large_database(database)
+    count = len(load())
+    leftovers = lambda: sorted(tmp_path.glob(".keyframes.npz.*.tmp"))  # noqa: E731
+    with ros_context() as context:
+        env = isolated_ros_env(context.get_domain_id())
+        probe = rclpy.create_node("probe", context=context)
+        collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
+        for attempt in range(3):
+            collector.messages["/diagnostics"].clear()
+            node = subprocess.Popen(node_command(f"database_path:={database}", "save_every:=0",
+                                                 "diagnostics_period:=0.2"),
+                                    env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            try:
+                assert collector.wait_for({"/diagnostics": 1}, timeout=60), "node did not come up"
+                assert stats(collector)["database_size"] == count
+                assert leftovers() == []  # the start removed what the last kill left
+                if attempt == 2:
+                    break
+                # one acknowledged save first: the client has then found this node's service
+                # (a killed node's can linger in the graph, and a request to it is lost)
+                client = probe.create_client(Trigger, "/vbrl_node/save_database")
+                assert client.wait_for_service(timeout_sec=20)
+                for _ in range(10):
+                    future = client.call_async(Trigger.Request())
+                    if collector.spin_until(future.done, 3):
+                        break
+                assert future.done() and future.result().success
+                client.call_async(Trigger.Request())  # the request goes out now; the reply never comes
+                deadline = time.monotonic() + 20
+                while not leftovers() and time.monotonic() < deadline:
+                    time.sleep(0.001)
+                node.send_signal(signal.SIGKILL)  # mid-save
+                node.wait(timeout=20)
+                probe.destroy_client(client)
+                assert leftovers(), "the save was not caught mid-write"
+                assert len(load()) == count  # the last complete file, as acknowledged
+            finally:
+                if node.poll() is None:
+                    node.send_signal(signal.SIGTERM)
+                output, _ = node.communicate(timeout=60)
+        probe.destroy_node()
+    assert node.returncode == 0, output
+    assert "removed 1 temporary file(s) that interrupted saves of" in output and f"saved {count} keyframes" in output

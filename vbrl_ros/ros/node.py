@@ -39,6 +39,7 @@ from vbrl_ros.detection.detector import LoopClosureDetector
 from vbrl_ros.detection.settings import SettingsError
 from vbrl_ros.grids.ground_frame import gravity_rotation
 from vbrl_ros.index.parameters import IndexParameters
+from vbrl_ros.io.atomic import remove_stale_temporaries
 from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
 from vbrl_ros.model.builtin import load_default_model
 from vbrl_ros.model.model_file import ModelFileError, load_model
@@ -121,6 +122,11 @@ class VbrlNode(Node):
         scorer = self.model.scorer(prune=self.settings.weight_prune)
         model_id = self.model.identity()
         path = self.settings.database_path
+        if path:
+            removed = remove_stale_temporaries(path)
+            if removed:
+                self.get_logger().info(f"removed {len(removed)} temporary file(s) that interrupted saves of "
+                                       f"{path} left")
         if path and Path(path).exists():
             # a saved database keeps its own storage type (and refuses another prune)
             return KeyframeDatabase.load(path, scorer, model_id)
