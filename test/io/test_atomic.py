@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from vbrl_ros.io.atomic import atomic_write, remove_stale_temporaries
+from vbrl_ros.io.atomic import atomic_write, check_writable, remove_stale_temporaries
 
 
 def test_replaces_the_file_and_respects_the_umask(tmp_path):
@@ -82,3 +82,14 @@ def test_stale_temporaries_of_killed_writers_go_and_a_live_writers_stays(tmp_pat
         kill_9(live)
     assert len(remove_stale_temporaries(target)) == 1 and temporaries(target) == []
     assert target.read_bytes() == b"good" and other.exists()
+
+
+def test_check_writable_makes_the_folders_and_names_what_is_in_the_way(tmp_path):
+    check_writable(tmp_path / "new" / "deeper" / "file.npz")
+    assert (tmp_path / "new" / "deeper").is_dir() and list((tmp_path / "new" / "deeper").iterdir()) == []
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(NotADirectoryError) as error:
+        check_writable(tmp_path / "afile" / "sub" / "file.npz")
+    assert (error.value.strerror, error.value.filename) == ("a file where a folder should be", str(tmp_path / "afile"))
+    with pytest.raises(IsADirectoryError):
+        check_writable(tmp_path / "new")

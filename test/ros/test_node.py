@@ -17,6 +17,7 @@ from nav_msgs.msg import Odometry  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
+from vbrl_ros.ros.detector_node import stamp_seconds  # noqa: E402
 from vbrl_ros.ros.message_conversion import to_ros_msg  # noqa: E402
 from vbrl_ros.ros.testing import MessageCollector, isolated_ros_env, ros_context  # noqa: E402
 
@@ -76,6 +77,75 @@ def test_a_bad_parameter_stops_the_start_naming_it(param, named):
     result = subprocess.run(node_command(param), env=env, capture_output=True, text=True, timeout=60)
     assert result.returncode == 2
     assert "cannot start" in result.stderr and named in result.stderr
+
+
+def model_with_text_weights(path: Path) -> Path:
+    from vbrl_ros.model.builtin import load_default_model
+
+    saved = load_default_model().save(path)
+    with np.load(saved) as archive:
+        contents = dict(archive)
+    np.savez(saved, **{**contents, "W": np.array("W")})
+    return saved
+
+
+@pytest.mark.parametrize("param, line", [
+    ("cloud_topic:=bad topic", "parameter 'cloud_topic' is not a valid topic name: 'bad topic' (topic name must "
+                               "not contain characters other than alphanumerics, '_', '~', '{', or '}')"),
+    ("cloud_topic:=/points/", "parameter 'cloud_topic' is not a valid topic name: '/points/' (topic name must "
+                              "not end with a forward slash)"),
+    ("markers_topic:=//x", "parameter 'markers_topic' is not a valid topic name: '//x' (topic name must not "
+                           "contain repeated '/')"),
+    ("lio_sam_topic:=''", "parameter 'lio_sam_topic' is not a valid topic name: '' (topic name must not be "
+                          "empty string)"),
+    ("database_path:={tmp}/afile/keyframes.npz", "parameter 'database_path': cannot write "
+                                                 "{tmp}/afile/keyframes.npz (a file where a folder should be: {tmp}/afile)"),
+    ("database_path:={tmp}", "parameter 'database_path': cannot write {tmp} (a folder, not a file: {tmp})"),
+    ("model_path:={tmp}", "model file {tmp} is a directory"),
+    ("model_path:=/dev/null", "model file /dev/null is not a regular file"),
+    ("model_path:={tmp}/text_weights.npz", "{tmp}/text_weights.npz has a bad 'W': it holds a single <U1 value, "
+                                           "where the model format stores a 2-d float array"),
+    ("diagnostics_period:=1e-6", "parameter 'diagnostics_period' must be in [0.1, 3600.0] seconds, got 1e-06"),
+    ("verification_voxel:=1e-9", "parameter 'verification_voxel' must be in [0.05, 10.0] m, got 1e-09"),
+])
+def test_a_bad_topic_path_or_value_stops_the_start_in_one_line(tmp_path, param, line):
+    (tmp_path / "afile").write_text("a file, not a folder")
+    model_with_text_weights(tmp_path / "text_weights.npz")
+    param, line = (text.replace("{tmp}", str(tmp_path)) for text in (param, line))
+    assert start_fails("--ros-args", "-p", param) == f"vbrl_node: cannot start: {line}"
+
+
+@pytest.mark.parametrize("delay", [0.2, 0.4, 0.7, 1.0, 1.5])
+def test_ctrl_c_during_start_up_stops_without_a_traceback(delay):
+    node = subprocess.Popen(node_command(), env=isolated_ros_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    time.sleep(delay)  # importing numpy, rclpy, numba and loading the model take a second or two
+    node.send_signal(signal.SIGINT)
+    output, _ = node.communicate(timeout=60)
+    assert node.returncode == 0 and "Traceback" not in output, output
+
+
+def test_a_failed_final_save_is_one_line_and_exit_1(tmp_path):
+    folder = tmp_path / "db"
+    with ros_context() as context:
+        env = isolated_ros_env(context.get_domain_id())
+        probe = rclpy.create_node("probe", context=context)
+        collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
+        node = subprocess.Popen(node_command(f"database_path:={folder / 'keyframes.npz'}", "diagnostics_period:=0.2"),
+                                env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            assert collector.wait_for({"/diagnostics": 1}, timeout=30), "node did not come up"
+            folder.rmdir()  # the start made it (and checked it); now a file takes its place
+            folder.write_text("not a folder")
+            response = call(collector, "/vbrl_node/save_database")
+            assert not response.success and response.message.startswith("save failed: ")
+            assert collector.spin_until(lambda: stats(collector)["failed_saves"] == 1, 10)
+        finally:
+            node.send_signal(signal.SIGTERM)
+            output, _ = node.communicate(timeout=60)
+        probe.destroy_node()
+    assert node.returncode == 1 and "Traceback" not in output, output
+    assert f"[vbrl_node] database not saved: [Errno 17] File exists: '{folder}'" in output
 
 
 def scan(stamp: float, seed: int) -> PointCloud2:
@@ -265,12 +335,14 @@ def test_kill_9_mid_save_keeps_the_database_and_the_next_start_removes_the_lefto
         probe = rclpy.create_node("probe", context=context)
         collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
         for attempt in range(3):
-            collector.messages["/diagnostics"].clear()
+            started = time.time()
             node = subprocess.Popen(node_command(f"database_path:={database}", "save_every:=0",
                                                  "diagnostics_period:=0.2"),
                                     env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
             try:
-                assert collector.wait_for({"/diagnostics": 1}, timeout=60), "node did not come up"
+                # this node's diagnostics, not a late one of the node killed before
+                assert collector.spin_until(lambda: collector.count("/diagnostics") and stamp_seconds(
+                    collector.messages["/diagnostics"][-1].header.stamp) > started, 60), "node did not come up"
                 assert stats(collector)["database_size"] == count
                 assert leftovers() == []  # the start removed what the last kill left
                 if attempt == 2:

@@ -10,6 +10,7 @@ it while writing, which the kernel releases when the process dies, so
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import glob
 import os
@@ -40,6 +41,23 @@ def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> 
         Path(tmp_name).unlink(missing_ok=True)
         raise
     return path
+
+
+def check_writable(path: str | os.PathLike) -> None:
+    """Raise ``OSError`` (with ``strerror`` and ``filename``) unless :func:`atomic_write` can write ``path``.
+
+    Creates the missing folders, as the first write would, and a temporary file
+    there (removed at once): a read-only filesystem or missing permission shows now.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(errno.EISDIR, "a folder, not a file", str(path))
+    blocking = next((folder for folder in path.parents if folder.exists() and not folder.is_dir()), None)
+    if blocking is not None:
+        raise NotADirectoryError(errno.ENOTDIR, "a file where a folder should be", str(blocking))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryFile(dir=path.parent):
+        pass
 
 
 def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:

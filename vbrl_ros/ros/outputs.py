@@ -32,6 +32,7 @@ class NodeStats:
     malformed: int = 0
     empty: int = 0
     errors: int = 0
+    failed_saves: int = 0
     odometry: int = 0
     bad_odometry: int = 0
     arrivals: deque = field(default_factory=lambda: deque(maxlen=2000))
@@ -73,6 +74,7 @@ def diagnostics_status(stats: NodeStats, database_size: int, session: int) -> Di
         "malformed_scans": stats.malformed,
         "empty_scans": stats.empty,
         "processing_errors": stats.errors,
+        "failed_saves": stats.failed_saves,
         "odometry_received": stats.odometry,
         "bad_odometry": stats.bad_odometry,
         "latency_p50_ms": f"{p50:.1f}",
@@ -81,12 +83,13 @@ def diagnostics_status(stats: NodeStats, database_size: int, session: int) -> Di
         "database_size": database_size,
         "session_id": session,
     }
-    problems = stats.malformed + stats.empty + stats.errors + stats.dropped + stats.bad_odometry
+    problems = (stats.malformed + stats.empty + stats.errors + stats.dropped + stats.bad_odometry
+                + stats.failed_saves)
     status = DiagnosticStatus(
         name="vbrl_node: loop closure",
         hardware_id="vbrl",
         level=DiagnosticStatus.WARN if problems else DiagnosticStatus.OK,
-        message="dropped or skipped scans or odometry (see values)" if problems else "ok",
+        message="dropped or skipped scans or odometry, or failed saves (see values)" if problems else "ok",
     )
     status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
     return status
