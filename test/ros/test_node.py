@@ -19,7 +19,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from vbrl_ros.ros.detector_node import stamp_seconds  # noqa: E402
 from vbrl_ros.ros.message_conversion import to_ros_msg  # noqa: E402
-from vbrl_ros.ros.testing import MessageCollector, isolated_ros_env, ros_context  # noqa: E402
+from vbrl_ros.ros.testing import MessageCollector, diagnostics_values, isolated_ros_env, ros_context  # noqa: E402
 
 NODE = [sys.executable, "-m", "vbrl_ros.ros.node"]
 
@@ -169,9 +169,8 @@ def malformed(stamp: float) -> list[PointCloud2]:
     return [no_z, short, zero_step, beyond, empty, nan_only]
 
 
-def stats(collector: MessageCollector) -> dict[str, int]:
-    last = collector.messages["/diagnostics"][-1].status[0]
-    return {kv.key: float(kv.value) for kv in last.values}
+def stats(collector: MessageCollector) -> dict[str, float]:
+    return diagnostics_values(collector.messages["/diagnostics"][-1])
 
 
 def latest(collector: MessageCollector) -> dict[str, int]:
