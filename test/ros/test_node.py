@@ -66,19 +66,6 @@ def test_an_unknown_parameter_in_a_params_file_stops_the_start(tmp_path):
     assert "unknown parameter 'keyframe_distanse' (did you mean 'keyframe_distance'?)" in line
 
 
-@pytest.mark.parametrize(
-    "param, named",
-    [("keyframe_distance:=-1.0", "keyframe_distance"), ("top_k:=abc", "top_k"),
-     ("min_fitness:=2.0", "min_fitness"), ("model_path:=/nonexistent/model.npz", "does not exist"),
-     ("cloud_topics:=/velodyne_points", "unknown parameter 'cloud_topics' (did you mean 'cloud_topic'?)")],
-)
-def test_a_bad_parameter_stops_the_start_naming_it(param, named):
-    env = isolated_ros_env()
-    result = subprocess.run(node_command(param), env=env, capture_output=True, text=True, timeout=60)
-    assert result.returncode == 2
-    assert "cannot start" in result.stderr and named in result.stderr
-
-
 def model_with_text_weights(path: Path) -> Path:
     from vbrl_ros.model.builtin import load_default_model
 
@@ -90,32 +77,34 @@ def model_with_text_weights(path: Path) -> Path:
 
 
 @pytest.mark.parametrize("param, line", [
+    ("keyframe_distance:=-1.0", "parameter 'keyframe_distance' must be a positive number, got -1.0"),
+    ("top_k:=abc", "parameter 'top_k' must be int, got str 'abc'"),
+    ("min_fitness:=2.0", "parameter 'min_fitness' must be in [0, 1], got 2.0"),
+    ("verification_voxel:=1e-9", "parameter 'verification_voxel' must be in [0.05, 10.0] m, got 1e-09"),
+    ("cloud_topics:=/velodyne_points", "unknown parameter 'cloud_topics' (did you mean 'cloud_topic'?); "
+                                       "vbrl_node --help lists them"),
     ("cloud_topic:=bad topic", "parameter 'cloud_topic' is not a valid topic name: 'bad topic' (topic name must "
                                "not contain characters other than alphanumerics, '_', '~', '{', or '}')"),
-    ("cloud_topic:=/points/", "parameter 'cloud_topic' is not a valid topic name: '/points/' (topic name must "
-                              "not end with a forward slash)"),
     ("markers_topic:=//x", "parameter 'markers_topic' is not a valid topic name: '//x' (topic name must not "
                            "contain repeated '/')"),
     ("lio_sam_topic:=''", "parameter 'lio_sam_topic' is not a valid topic name: '' (topic name must not be "
                           "empty string)"),
     ("database_path:={tmp}/afile/keyframes.npz", "parameter 'database_path': cannot write "
                                                  "{tmp}/afile/keyframes.npz (a file where a folder should be: {tmp}/afile)"),
-    ("database_path:={tmp}", "parameter 'database_path': cannot write {tmp} (a folder, not a file: {tmp})"),
+    ("model_path:=/nonexistent/model.npz", "model file /nonexistent/model.npz does not exist"),
     ("model_path:={tmp}", "model file {tmp} is a directory"),
-    ("model_path:=/dev/null", "model file /dev/null is not a regular file"),
     ("model_path:={tmp}/text_weights.npz", "{tmp}/text_weights.npz has a bad 'W': it holds a single <U1 value, "
                                            "where the model format stores a 2-d float array"),
-    ("diagnostics_period:=1e-6", "parameter 'diagnostics_period' must be in [0.1, 3600.0] seconds, got 1e-06"),
-    ("verification_voxel:=1e-9", "parameter 'verification_voxel' must be in [0.05, 10.0] m, got 1e-09"),
 ])
-def test_a_bad_topic_path_or_value_stops_the_start_in_one_line(tmp_path, param, line):
+def test_a_bad_parameter_stops_the_start_in_one_line_naming_it(tmp_path, param, line):
     (tmp_path / "afile").write_text("a file, not a folder")
-    model_with_text_weights(tmp_path / "text_weights.npz")
+    if "text_weights" in param:
+        model_with_text_weights(tmp_path / "text_weights.npz")
     param, line = (text.replace("{tmp}", str(tmp_path)) for text in (param, line))
     assert start_fails("--ros-args", "-p", param) == f"vbrl_node: cannot start: {line}"
 
 
-@pytest.mark.parametrize("delay", [0.2, 0.4, 0.7, 1.0, 1.5])
+@pytest.mark.parametrize("delay", [0.2, 0.5, 1.0])
 def test_ctrl_c_during_start_up_stops_without_a_traceback(delay):
     node = subprocess.Popen(node_command(), env=isolated_ros_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
