@@ -73,7 +73,7 @@ def test_another_format_names_its_tag_or_its_arrays(tmp_path):
 
 @pytest.mark.parametrize("name, value, held", [
     ("x", np.array("abc"), "a single <U3 value"),
-    ("x", np.ones((2, 2), np.int64), "a int64 array of shape (2, 2)"),
+    ("x", np.ones((2, 2), np.int64), "an int64 array of shape (2, 2)"),
     ("x", np.ones(3), "a float64 array of shape (3,)"),
     ("name", np.array(5), "a single int64 value"),
     ("name", np.array(["a", "b"]), "a <U1 array of shape (2,)"),
@@ -103,7 +103,7 @@ def test_a_header_claiming_more_than_its_entry_holds_is_refused_unread(tmp_path)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
-    assert str(error.value) == (f"{path} has a bad 'x': its header declares a int64 array of shape "
+    assert str(error.value) == (f"{path} has a bad 'x': its header declares an int64 array of shape "
                                 f"(1000000000000,) (8.0 TB) but the archive holds 24 bytes for it")
     assert peak < 1e6
 

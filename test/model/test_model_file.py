@@ -169,6 +169,10 @@ def test_polar_model_ties_voxel_weights_across_sectors(tmp_path):
         load_model(tmp_path / "polar.npz", expected_config=CONFIG)
 
 
+THRESHOLD_RULE = "metadata_json: distance_threshold must be a finite number >= 0, got"
+STEP_RULE = "metadata_json: translation_search must be a finite number in [0, 10], got"
+
+
 def _metadata_with(**fields):
     return np.array(json.dumps({"scans": 12, **fields}))
 
@@ -181,11 +185,11 @@ def _metadata_with(**fields):
     ("W", np.array("W"), "bad 'W'"),
     ("metadata_json", np.array("[1, 2]"), "metadata_json must be a JSON object"),
     ("metadata_json", np.array("{"), "metadata_json is not valid JSON"),
-    ("metadata_json", _metadata_with(distance_threshold="low"), "distance_threshold must be a number"),
-    ("metadata_json", _metadata_with(distance_threshold=float("nan")), "distance_threshold must be a number"),
-    ("metadata_json", _metadata_with(distance_threshold=-1), "distance_threshold must be a number"),
-    ("metadata_json", _metadata_with(translation_search=True), "translation_search must be a number"),
-    ("metadata_json", _metadata_with(translation_search=50.0), "translation_search must be a number"),
+    ("metadata_json", _metadata_with(distance_threshold="low"), THRESHOLD_RULE),
+    ("metadata_json", _metadata_with(distance_threshold=float("nan")), THRESHOLD_RULE),
+    ("metadata_json", _metadata_with(distance_threshold=-1), THRESHOLD_RULE),
+    ("metadata_json", _metadata_with(translation_search=True), STEP_RULE),
+    ("metadata_json", _metadata_with(translation_search=50.0), STEP_RULE),
     ("w_voxel", None, "w_voxel must be non-negative"),
 ])
 def test_a_malformed_field_is_one_line_naming_the_file_and_the_field(tmp_path, member, value, named):

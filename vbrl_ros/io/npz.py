@@ -48,7 +48,7 @@ class Member:
         kind = _KIND_NAMES.get(self.kinds, f"dtype kind {self.kinds!r}")
         if self.ndim == 0:
             return "a text string" if self.kinds == "U" else f"a single {kind} value"
-        return f"a {self.ndim}-d {kind} array"
+        return f"a {self.ndim}-d {kind} array"  # "a 2-d", "a 1-d": every ndim reads with "a"
 
 
 TEXT = Member("U", 0)
@@ -155,7 +155,8 @@ class _MemberReader:
 def _array_kind(shape: tuple[int, ...], dtype: np.dtype) -> str:
     if not shape:
         return f"a single {dtype} value"
-    return f"a {dtype} array of shape {shape}"
+    article = "an" if str(dtype)[0] in "aeiou" else "a"  # an int64, a float32
+    return f"{article} {dtype} array of shape {shape}"
 
 
 def _size(nbytes: int) -> str:

@@ -221,7 +221,8 @@ def _metadata(text: str) -> dict[str, Any]:
         value = metadata.get(name, low)
         number = isinstance(value, (int, float)) and not isinstance(value, bool)
         if not (number and math.isfinite(value) and low <= value <= high):
-            raise ModelFileError(f"metadata_json: {name} must be a number in [{low}, {high}], got {value!r}")
+            rule = f">= {low:g}" if high == math.inf else f"in [{low:g}, {high:g}]"
+            raise ModelFileError(f"metadata_json: {name} must be a finite number {rule}, got {value!r}")
     return metadata
 
 
