@@ -177,3 +177,11 @@ def test_pickled_members_are_refused_or_ignored_never_run(tmp_path):
 
 def test_one_line_joins_lines():
     assert one_line(ValueError("a\n  b")) == "a b" and one_line(ValueError()) == "ValueError"
+
+
+def test_sizes_that_differ_never_read_alike(tmp_path):
+    path = save(tmp_path / "a.npz")
+    with zipfile.ZipFile(path, "a") as archive:
+        archive.writestr("x.npy", npy_header((1_000_000,)) + bytes(7_999_992))  # one element short
+    with pytest.raises(Refused, match=r"\(8000000 bytes\) but the archive holds 7999992 bytes for it$"):
+        read(path)

@@ -137,8 +137,9 @@ class _MemberReader:
             raise self._bad(name, f"it holds {_array_kind(shape, dtype)}, where the {self.what} "
                                   f"format stores {member.describe()}")
         if header + nbytes != info.file_size or info.compress_size > self.path.stat().st_size:
-            raise self._bad(name, f"its header declares {_array_kind(shape, dtype)} ({_size(nbytes)}) "
-                                  f"but the archive holds {_size(max(info.file_size - header, 0))} for it")
+            declared, held = _sizes(nbytes, max(info.file_size - header, 0))
+            raise self._bad(name, f"its header declares {_array_kind(shape, dtype)} ({declared}) "
+                                  f"but the archive holds {held} for it")
         return nbytes
 
     def read(self, name: str, info: zipfile.ZipInfo | None, member: Member) -> np.ndarray | None:
@@ -157,6 +158,12 @@ def _array_kind(shape: tuple[int, ...], dtype: np.dtype) -> str:
         return f"a single {dtype} value"
     article = "an" if str(dtype)[0] in "aeiou" else "a"  # an int64, a float32
     return f"{article} {dtype} array of shape {shape}"
+
+
+def _sizes(a: int, b: int) -> tuple[str, str]:
+    """Two sizes that differ, each as :func:`_size` says it unless that makes them look alike."""
+    rounded = _size(a), _size(b)
+    return rounded if rounded[0] != rounded[1] else (f"{a} bytes", f"{b} bytes")
 
 
 def _size(nbytes: int) -> str:
