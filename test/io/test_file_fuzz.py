@@ -10,6 +10,7 @@ with the seed that reproduces it. ``--long`` runs 1000 mutations per format.
 from __future__ import annotations
 
 import json
+import math
 import struct
 import tracemalloc
 import zipfile
@@ -277,9 +278,10 @@ def test_mutated_model_files_load_usable_or_fail_in_one_line(model, tmp_path, lo
 
     def load_and_use(path: Path) -> None:
         loaded = load_model(path, expected_config=CONFIG)
+        assert math.isfinite(loaded.distance_threshold()) and loaded.distance_threshold() >= 0
+        assert 0 <= loaded.translation_search() <= 10
         scorer = loaded.scorer(prune=PRUNE)
         detector = LoopClosureDetector(loaded, KeyframeDatabase(scorer, loaded.identity()), DetectorSettings())
-        assert np.isfinite(detector.distance_threshold) and detector.distance_threshold >= 0
         detector.process_keyframe(points, 0.0)
         detector.process_keyframe(points, 100.0)
 
