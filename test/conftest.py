@@ -1,4 +1,4 @@
-"""Fixtures for the tests that read the package's structure: its modules, from the tree."""
+"""The ``--long`` option, and fixtures for the tests that read the package's structure: its modules, from the tree."""
 
 from __future__ import annotations
 
@@ -15,6 +15,17 @@ ROS_PACKAGES = (
     "visualization_msgs", "std_srvs", "rcl_interfaces", "rosidl_runtime_py", "builtin_interfaces",
     "rosgraph_msgs", "rosidl_parser", "tf2_msgs",
 )
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--long", action="store_true",
+                     help="run the reliability fuzz at full length (10k messages, 1k file mutations)")
+
+
+@pytest.fixture(scope="session")
+def long_run(request: pytest.FixtureRequest) -> bool:
+    """True with ``--long``: fuzz tests run for as long as a local check deserves, not CI's minute."""
+    return bool(request.config.getoption("--long"))
 
 
 def _modules(directory: Path, prefix: str) -> Iterator[tuple[str, Path]]:

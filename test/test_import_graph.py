@@ -169,7 +169,7 @@ def test_the_node_loads_no_training_code(graph: dict[str, set[str]]) -> None:
 
 def test_importing_the_node_loads_no_training_code() -> None:
     pytest.importorskip("rclpy")
-    code = ("import sys, vbrl_ros.ros.node\n"
+    code = ("import sys, vbrl_ros.ros.node, vbrl_ros.ros.detector_node\n"
             "print(','.join(sorted(m for m in sys.modules if m.startswith('vbrl_ros.training'))))\n")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr

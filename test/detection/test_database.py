@@ -344,6 +344,26 @@ def test_inconsistent_contents_are_refused(tmp_path):
     _assert_refused(path, "lacks poses")
 
 
+def test_a_next_keyframe_id_no_closure_message_carries_is_refused(tmp_path):
+    path = make_db(3)[0].save(tmp_path / "kf.npz")
+    _rewrite(path, next_keyframe_id=np.array(2**63 - 1))
+    _assert_refused(path, "next_keyframe_id 9223372036854775807 is beyond 2\\*\\*53")
+    _rewrite(path, next_keyframe_id=np.array(2**53 - 1))
+    db = KeyframeDatabase.load(path, SCORER, "model-A")
+    assert db.add(np.zeros(db.n_active), 9.0, "s") == 2**53 - 1
+    db = KeyframeDatabase.load(db.save(path), SCORER, "model-A")
+    with pytest.raises(ValueError, match="no keyframe id left"):
+        db.add(np.zeros(db.n_active), 10.0, "s")
+
+
+def test_the_next_session_follows_the_largest_numbered_one():
+    db, _ = make_db(0)
+    assert db.next_session() == 0
+    for session in ("3", "lab", "\u00b2", "\u0667", "9" * 40):  # superscript two; Arabic-Indic seven
+        db.add(np.zeros(db.n_active), 0.0, session)
+    assert db.next_session() == 8
+
+
 def test_index_arrays_are_checked_on_load(tmp_path):
     db, full = make_db(30)
     path = db.save(tmp_path / "kf.npz")

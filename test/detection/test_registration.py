@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from vbrl_ros.detection.registration import (
+    MAX_POINT_RANGE_M,
     Verification,
     downsample_for_storage,
     verify_loop,
@@ -259,6 +260,22 @@ def test_downsample_for_storage(views):
     assert distance.max() < 1e-4
     assert downsample_for_storage(np.empty((0, 3))).shape == (0, 3)
     np.testing.assert_array_equal(downsample_for_storage(match), stored)  # deterministic
+
+
+@pytest.mark.filterwarnings("error")  # the node would print them for every such scan
+@pytest.mark.parametrize("extreme", [3.4e38, 1e30, 5e3])
+def test_points_beyond_any_sensors_range_are_dropped_before_storage_and_verification(views, extreme):
+    query, match = views
+    rng = np.random.default_rng(9)
+    corrupt = extreme * rng.uniform(0.5, 1.0, (60, 3)) * rng.choice([-1.0, 1.0], (60, 3))
+    corrupt[:20, :2] = rng.uniform(-10, 10, (20, 2))  # far in z only
+    polluted = np.concatenate([query, corrupt]).astype(np.float32)  # as a PointCloud2 delivers them
+    stored = downsample_for_storage(np.concatenate([match, corrupt]))
+    assert np.abs(stored).max() <= MAX_POINT_RANGE_M
+    result = verify_loop(polluted, stored, initial_guess=yaw_guess(np.deg2rad(25.0)))
+    translation_error, rotation_error = pose_error(result.T_query_match, T_QUERY_MATCH)
+    assert result.converged and result.fitness > 0.25 and result.rejection(0.2) is None
+    assert translation_error < 0.10 and rotation_error < 1.0
 
 
 def test_ground_mask_separates_ground_from_structure(views):

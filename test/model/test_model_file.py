@@ -167,3 +167,45 @@ def test_polar_model_ties_voxel_weights_across_sectors(tmp_path):
                   w_voxel=np.full(POLAR.grid.n_voxels, 1.0 / POLAR.grid.n_voxels))
     with pytest.raises(ModelFileError, match="grid.kind"):
         load_model(tmp_path / "polar.npz", expected_config=CONFIG)
+
+
+THRESHOLD_RULE = "metadata_json: distance_threshold must be a finite number >= 0, got"
+STEP_RULE = "metadata_json: translation_search must be a finite number in [0, 10], got"
+
+
+def _metadata_with(**fields):
+    return np.array(json.dumps({"scans": 12, **fields}))
+
+
+@pytest.mark.parametrize("member, value, named", [
+    ("scenarios_json", np.array(5), "bad 'scenarios_json'"),
+    ("scenarios_json", np.array('{"a": 1}'), "scenarios_json must be a JSON list of names"),
+    ("format_version", np.array([1, 1]), "bad 'format_version'"),
+    ("lambda1", np.array("abc"), "bad 'lambda1'"),
+    ("W", np.array("W"), "bad 'W'"),
+    ("metadata_json", np.array("[1, 2]"), "metadata_json must be a JSON object"),
+    ("metadata_json", np.array("{"), "metadata_json is not valid JSON"),
+    ("metadata_json", _metadata_with(distance_threshold="low"), THRESHOLD_RULE),
+    ("metadata_json", _metadata_with(distance_threshold=float("nan")), THRESHOLD_RULE),
+    ("metadata_json", _metadata_with(distance_threshold=-1), THRESHOLD_RULE),
+    ("metadata_json", _metadata_with(translation_search=True), STEP_RULE),
+    ("metadata_json", _metadata_with(translation_search=50.0), STEP_RULE),
+    ("w_voxel", None, "w_voxel must be non-negative"),
+])
+def test_a_malformed_field_is_one_line_naming_the_file_and_the_field(tmp_path, member, value, named):
+    path = make_model().save(tmp_path / "model.npz")
+    with np.load(path) as archive:
+        contents = dict(archive)
+    contents[member] = -contents[member] if value is None else value
+    np.savez(path, **contents)
+    with pytest.raises(ModelFileError) as error:
+        load_model(path)
+    message = str(error.value)
+    assert message.startswith(str(path)) and named in message and "\n" not in message, message
+
+
+def test_usable_metadata_loads(tmp_path):
+    model = make_model()
+    model.metadata.update(distance_threshold=0.25, translation_search=1.5, sources=["a.mcap"])
+    loaded = load_model(model.save(tmp_path / "model.npz"))
+    assert (loaded.distance_threshold(), loaded.translation_search()) == (0.25, 1.5)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -12,11 +13,13 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
+from vbrl_ros.ros.detector_node import stamp_seconds  # noqa: E402
 from vbrl_ros.ros.message_conversion import to_ros_msg  # noqa: E402
-from vbrl_ros.ros.testing import MessageCollector, isolated_ros_env, ros_context  # noqa: E402
+from vbrl_ros.ros.testing import MessageCollector, diagnostics_values, isolated_ros_env, ros_context  # noqa: E402
 
 NODE = [sys.executable, "-m", "vbrl_ros.ros.node"]
 
@@ -63,17 +66,75 @@ def test_an_unknown_parameter_in_a_params_file_stops_the_start(tmp_path):
     assert "unknown parameter 'keyframe_distanse' (did you mean 'keyframe_distance'?)" in line
 
 
-@pytest.mark.parametrize(
-    "param, named",
-    [("keyframe_distance:=-1.0", "keyframe_distance"), ("top_k:=abc", "top_k"),
-     ("min_fitness:=2.0", "min_fitness"), ("model_path:=/nonexistent/model.npz", "does not exist"),
-     ("cloud_topics:=/velodyne_points", "unknown parameter 'cloud_topics' (did you mean 'cloud_topic'?)")],
-)
-def test_a_bad_parameter_stops_the_start_naming_it(param, named):
-    env = isolated_ros_env()
-    result = subprocess.run(node_command(param), env=env, capture_output=True, text=True, timeout=60)
-    assert result.returncode == 2
-    assert "cannot start" in result.stderr and named in result.stderr
+def model_with_text_weights(path: Path) -> Path:
+    from vbrl_ros.model.builtin import load_default_model
+
+    saved = load_default_model().save(path)
+    with np.load(saved) as archive:
+        contents = dict(archive)
+    np.savez(saved, **{**contents, "W": np.array("W")})
+    return saved
+
+
+@pytest.mark.parametrize("param, line", [
+    ("keyframe_distance:=-1.0", "parameter 'keyframe_distance' must be a positive number, got -1.0"),
+    ("top_k:=abc", "parameter 'top_k' must be int, got str 'abc'"),
+    ("min_fitness:=2.0", "parameter 'min_fitness' must be in [0, 1], got 2.0"),
+    ("verification_voxel:=1e-9", "parameter 'verification_voxel' must be in [0.05, 10.0] m, got 1e-09"),
+    ("cloud_topics:=/velodyne_points", "unknown parameter 'cloud_topics' (did you mean 'cloud_topic'?); "
+                                       "vbrl_node --help lists them"),
+    ("cloud_topic:=bad topic", "parameter 'cloud_topic' is not a valid topic name: 'bad topic' (topic name must "
+                               "not contain characters other than alphanumerics, '_', '~', '{', or '}')"),
+    ("markers_topic:=//x", "parameter 'markers_topic' is not a valid topic name: '//x' (topic name must not "
+                           "contain repeated '/')"),
+    ("lio_sam_topic:=''", "parameter 'lio_sam_topic' is not a valid topic name: '' (topic name must not be "
+                          "empty string)"),
+    ("database_path:={tmp}/afile/keyframes.npz", "parameter 'database_path': cannot write "
+                                                 "{tmp}/afile/keyframes.npz (a file where a folder should be: {tmp}/afile)"),
+    ("model_path:=/nonexistent/model.npz", "model file /nonexistent/model.npz does not exist"),
+    ("model_path:={tmp}", "model file {tmp} is a directory"),
+    ("model_path:={tmp}/text_weights.npz", "{tmp}/text_weights.npz has a bad 'W': it holds a single <U1 value, "
+                                           "where the model format stores a 2-d float array"),
+])
+def test_a_bad_parameter_stops_the_start_in_one_line_naming_it(tmp_path, param, line):
+    (tmp_path / "afile").write_text("a file, not a folder")
+    if "text_weights" in param:
+        model_with_text_weights(tmp_path / "text_weights.npz")
+    param, line = (text.replace("{tmp}", str(tmp_path)) for text in (param, line))
+    assert start_fails("--ros-args", "-p", param) == f"vbrl_node: cannot start: {line}"
+
+
+@pytest.mark.parametrize("delay", [0.2, 0.5, 1.0])
+def test_ctrl_c_during_start_up_stops_without_a_traceback(delay):
+    node = subprocess.Popen(node_command(), env=isolated_ros_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    time.sleep(delay)  # importing numpy, rclpy, numba and loading the model take a second or two
+    node.send_signal(signal.SIGINT)
+    output, _ = node.communicate(timeout=60)
+    assert node.returncode == 0 and "Traceback" not in output, output
+
+
+def test_a_failed_final_save_is_one_line_and_exit_1(tmp_path):
+    folder = tmp_path / "db"
+    with ros_context() as context:
+        env = isolated_ros_env(context.get_domain_id())
+        probe = rclpy.create_node("probe", context=context)
+        collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
+        node = subprocess.Popen(node_command(f"database_path:={folder / 'keyframes.npz'}", "diagnostics_period:=0.2"),
+                                env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            assert collector.wait_for({"/diagnostics": 1}, timeout=30), "node did not come up"
+            folder.rmdir()  # the start made it (and checked it); now a file takes its place
+            folder.write_text("not a folder")
+            response = call(collector, "/vbrl_node/save_database")
+            assert not response.success and response.message.startswith("save failed: ")
+            assert collector.spin_until(lambda: stats(collector)["failed_saves"] == 1, 10)
+        finally:
+            node.send_signal(signal.SIGTERM)
+            output, _ = node.communicate(timeout=60)
+        probe.destroy_node()
+    assert node.returncode == 1 and "Traceback" not in output, output
+    assert f"[vbrl_node] database not saved: [Errno 17] File exists: '{folder}'" in output
 
 
 def scan(stamp: float, seed: int) -> PointCloud2:
@@ -97,9 +158,8 @@ def malformed(stamp: float) -> list[PointCloud2]:
     return [no_z, short, zero_step, beyond, empty, nan_only]
 
 
-def stats(collector: MessageCollector) -> dict[str, int]:
-    last = collector.messages["/diagnostics"][-1].status[0]
-    return {kv.key: float(kv.value) for kv in last.values}
+def stats(collector: MessageCollector) -> dict[str, float]:
+    return diagnostics_values(collector.messages["/diagnostics"][-1])
 
 
 def latest(collector: MessageCollector) -> dict[str, int]:
@@ -179,3 +239,124 @@ def test_bad_input_load_services_and_sigterm(tmp_path: Path):
         probe.destroy_node()
     assert node.returncode == 0, output
     assert "saved 1 keyframes" in output  # SIGTERM saved the database
+
+
+def odometry(x: float, quaternion=(0.0, 0.0, 0.0, 1.0)) -> Odometry:
+    msg = Odometry()
+    msg.pose.pose.position.x = x
+    o = msg.pose.pose.orientation
+    o.x, o.y, o.z, o.w = quaternion
+    return msg
+
+
+def test_bad_odometry_is_counted_and_skipped_and_keyframing_goes_on():
+    with ros_context() as context:
+        env = isolated_ros_env(context.get_domain_id())
+        probe = rclpy.create_node("probe", context=context)
+        collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
+        clouds = probe.create_publisher(PointCloud2, "/points", 10)
+        odom = probe.create_publisher(Odometry, "/odom", 10)
+        node = subprocess.Popen(node_command("odom_topic:=/odom", "keyframe_distance:=1.0", "diagnostics_period:=0.2"),
+                                env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        sent = {"odometry": 0}
+
+        def move(msg: Odometry) -> None:
+            odom.publish(msg)
+            sent["odometry"] += 1
+            assert collector.spin_until(lambda: stats(collector)["odometry_received"] >= sent["odometry"], 20), \
+                "odometry not taken in (node dead?)"
+
+        def keyframe(stamp: float, expected: int) -> None:
+            clouds.publish(scan(stamp, int(stamp)))
+            assert collector.spin_until(lambda: stats(collector)["keyframes_processed"] >= expected, 30), \
+                f"no keyframe {expected} at {stamp} s: {stats(collector)}"
+
+        try:
+            assert collector.wait_for({"/diagnostics": 1}, timeout=30), "node did not come up"
+            assert collector.spin_until(lambda: odom.get_subscription_count() > 0
+                                        and clouds.get_subscription_count() > 0, 20)
+            move(odometry(0.0))
+            keyframe(1.0, 1)
+            move(odometry(float("nan")))  # a NaN position must not stop every later keyframe
+            move(odometry(2.0))
+            keyframe(2.0, 2)
+            move(odometry(3.0, (0.0, 0.0, 0.0, 0.0)))  # zero quaternion
+            move(odometry(3.0, (0.0, float("nan"), 0.0, 1.0)))
+            move(odometry(4.0))
+            keyframe(3.0, 3)
+            s = latest(collector)
+            assert (s["odometry_received"], s["bad_odometry"]) == (6, 3)
+            assert s["scans_between_keyframes"] == s["processing_errors"] == 0
+            assert node.poll() is None
+        finally:
+            node.send_signal(signal.SIGTERM)
+            output, _ = node.communicate(timeout=60)
+        probe.destroy_node()
+    assert node.returncode == 0, output
+    assert "odometry skipped: position (nan, 0.0, 0.0) is not finite" in output
+
+
+def large_database(path: Path, keyframes: int = 1000):
+    """A database of the built-in model big enough (~25 MB) that a save takes a while; a loader of it."""
+    from vbrl_ros.detection.database import KeyframeDatabase
+    from vbrl_ros.model.builtin import load_default_model
+    from vbrl_ros.ros.settings import NodeSettings
+
+    model = load_default_model()
+    scorer = model.scorer(prune=NodeSettings().weight_prune)
+    db = KeyframeDatabase(scorer, model.identity())
+    rng = np.random.default_rng(0)
+    for k in range(keyframes):
+        db.add(rng.normal(size=db.n_active).astype(np.float32), float(k), "0",
+               cloud=rng.uniform(-40, 40, (2000, 3)))
+    db.save(path)
+    return lambda: KeyframeDatabase.load(path, scorer, model.identity())
+
+
+def test_kill_9_mid_save_keeps_the_database_and_the_next_start_removes_the_leftovers(tmp_path):
+    database = tmp_path / "keyframes.npz"
+    load = large_database(database)
+    count = len(load())
+    leftovers = lambda: sorted(tmp_path.glob(".keyframes.npz.*.tmp"))  # noqa: E731
+    with ros_context() as context:
+        env = isolated_ros_env(context.get_domain_id())
+        probe = rclpy.create_node("probe", context=context)
+        collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
+        for attempt in range(3):
+            started = time.time()
+            node = subprocess.Popen(node_command(f"database_path:={database}", "save_every:=0",
+                                                 "diagnostics_period:=0.2"),
+                                    env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            try:
+                # this node's diagnostics, not a late one of the node killed before
+                assert collector.spin_until(lambda: collector.count("/diagnostics") and stamp_seconds(
+                    collector.messages["/diagnostics"][-1].header.stamp) > started, 60), "node did not come up"
+                assert stats(collector)["database_size"] == count
+                assert leftovers() == []  # the start removed what the last kill left
+                if attempt == 2:
+                    break
+                # one acknowledged save first: the client has then found this node's service
+                # (a killed node's can linger in the graph, and a request to it is lost)
+                client = probe.create_client(Trigger, "/vbrl_node/save_database")
+                assert client.wait_for_service(timeout_sec=20)
+                for _ in range(10):
+                    future = client.call_async(Trigger.Request())
+                    if collector.spin_until(future.done, 3):
+                        break
+                assert future.done() and future.result().success
+                client.call_async(Trigger.Request())  # the request goes out now; the reply never comes
+                deadline = time.monotonic() + 20
+                while not leftovers() and time.monotonic() < deadline:
+                    time.sleep(0.001)
+                node.send_signal(signal.SIGKILL)  # mid-save
+                node.wait(timeout=20)
+                probe.destroy_client(client)
+                assert leftovers(), "the save was not caught mid-write"
+                assert len(load()) == count  # the last complete file, as acknowledged
+            finally:
+                if node.poll() is None:
+                    node.send_signal(signal.SIGTERM)
+                output, _ = node.communicate(timeout=60)
+        probe.destroy_node()
+    assert node.returncode == 0, output
+    assert "removed 1 temporary file(s) that interrupted saves of" in output and f"saved {count} keyframes" in output

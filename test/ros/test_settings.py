@@ -42,6 +42,10 @@ def test_unknown_names_come_with_the_closest_known_one():
         ("top_k", "five", "top_k"),
         ("verify", 1, "verify"),
         ("distance_threshold", float("nan"), "distance_threshold"),
+        ("diagnostics_period", 1e-6, r"'diagnostics_period' must be in \[0.1, 3600.0\] seconds, got 1e-06"),
+        ("diagnostics_period", 1e5, "diagnostics_period"),
+        ("diagnostics_period", float("nan"), "diagnostics_period"),
+        ("verification_voxel", 1e-9, r"'verification_voxel' must be in \[0.05, 10.0\] m, got 1e-09"),
         ("no_such_parameter", 1, "no_such_parameter"),
     ],
 )

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vbrl_ros.detection.database_file import SavedDatabase, read_database, write_database
+from vbrl_ros.detection.database_file import MAX_KEYFRAME_ID, SavedDatabase, read_database, write_database
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.keyframe_store import grown
 from vbrl_ros.index.parameters import IndexParameters
@@ -126,6 +126,14 @@ class KeyframeDatabase:
         """(n, 4, 4) T_world_lidar of every keyframe; NaN where unknown."""
         return self._poses[: self._size].copy()
 
+    def next_session(self) -> int:
+        """One more than the largest session named by a number (0 without any): a new run's session.
+
+        Other names (and numbers beyond int64, which no session_id parameter gives) do not count.
+        """
+        numeric = [int(name) for name in self._sessions if name.isdecimal() and len(name) <= 18]
+        return max(numeric, default=-1) + 1
+
     def frame(self, index: int) -> np.ndarray:
         """The keyframe's 4x4 sensor -> grid-frame transform (its cloud is in the grid frame)."""
         return self._frames[self._check_index(index)].copy()
@@ -204,6 +212,8 @@ class KeyframeDatabase:
         points = np.empty((0, 3), np.float32) if cloud is None else np.asarray(cloud, np.float32)
         if points.ndim != 2 or points.shape[1] != 3:
             raise ValueError(f"cloud must have shape (M, 3), got {points.shape}")
+        if self._next_id >= MAX_KEYFRAME_ID:
+            raise ValueError(f"no keyframe id left: ids end at 2**53, {self._next_id} is next")
         self.index.add(descriptor_compact)  # validates the descriptor before storing anything
 
         n = self._size

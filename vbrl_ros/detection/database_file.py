@@ -8,6 +8,7 @@ model are meaningless under another. ``frames`` (n, 4, 4) is each keyframe's
 sensor -> grid-frame transform (its cloud is stored in the grid frame); version 2
 files, which have none, load with identity frames (their clouds are in the sensor
 frame, which is what an identity frame says). Version 1 files are refused.
+Members other than :data:`DATABASE_MEMBERS` are never read.
 """
 
 from __future__ import annotations
@@ -19,8 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from vbrl_ros.index.keyframe_index import KeyframeIndex
+from vbrl_ros.index.state import STATE_MEMBERS
 from vbrl_ros.io.atomic import atomic_write
-from vbrl_ros.io.npz import foreign_format, one_line, read_npz
+from vbrl_ros.io.npz import INTEGER, TEXT, Member, one_line, read_npz
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
 DATABASE_FORMAT = "vbrl_ros.keyframes"
@@ -30,6 +32,17 @@ COLUMNS = (
     "stamps", "session_index", "keyframe_ids", "poses", "frames", "cloud_offsets", "cloud_points",
 )  # fmt: skip
 _INDEX_PREFIX = "index_"
+#: Every member a database file may hold; others are never read.
+DATABASE_MEMBERS = {
+    "format": TEXT, "format_version": INTEGER, "model_id": TEXT, "dimension": INTEGER,
+    "active_rows": Member("iu", 1), "sectors": INTEGER, "sessions_json": TEXT, "next_keyframe_id": INTEGER,
+    "stamps": Member("f", 1), "session_index": Member("i", 1), "keyframe_ids": Member("i", 1),
+    "poses": Member("f", 3), "frames": Member("f", 3), "cloud_offsets": Member("i", 1),
+    "cloud_points": Member("f", 2),
+    **{f"{_INDEX_PREFIX}{name}": member for name, member in STATE_MEMBERS.items()},
+}
+#: Keyframe ids go out as float64 in the closure messages: exact up to 2**53.
+MAX_KEYFRAME_ID = 2**53
 
 
 class DatabaseFileError(ValueError):
@@ -71,12 +84,7 @@ def read_database(path: str | Path, scorer: WeightedL1Scorer, model_id: str) -> 
     The file must have been written for ``model_id`` and the scorer's active rows.
     """
     path = Path(path)
-    contents = read_npz(path, DatabaseFileError, "keyframe database")
-    if _scalar_str(contents.get("format")) != DATABASE_FORMAT:
-        raise DatabaseFileError(
-            f"{path} is not a vbrl_ros keyframe database file "
-            f"({foreign_format(contents, DATABASE_FORMAT)})"
-        )
+    contents = read_npz(path, DatabaseFileError, "keyframe database", DATABASE_FORMAT, DATABASE_MEMBERS)
     version = _scalar_int(contents.get("format_version"))
     if version not in READABLE_VERSIONS:
         raise DatabaseFileError(
@@ -110,7 +118,7 @@ def read_database(path: str | Path, scorer: WeightedL1Scorer, model_id: str) -> 
         if not isinstance(sessions, list):
             raise ValueError("sessions_json is not a list")
         return _checked(contents, [str(s) for s in sessions], scorer, str(model_id))
-    except (ValueError, TypeError) as error:
+    except (ValueError, TypeError, RecursionError) as error:  # RecursionError: JSON nested too deeply
         raise DatabaseFileError(f"{path} is inconsistent: {one_line(error)}") from None
 
 
@@ -139,6 +147,9 @@ def _checked(c: dict[str, np.ndarray], sessions: list[str], scorer: WeightedL1Sc
     next_id = _scalar_int(c["next_keyframe_id"])
     if next_id < 0 or (n and next_id <= ids[-1]):
         raise ValueError("next_keyframe_id would reuse an id")
+    if next_id > MAX_KEYFRAME_ID:
+        raise ValueError(f"next_keyframe_id {next_id} is beyond 2**53, the largest id a closure message "
+                         "carries exactly")
     if n and (c["session_index"].min() < 0 or c["session_index"].max() >= len(sessions)):
         raise ValueError("session index outside the session table")
     if not np.all(np.isfinite(c["stamps"])):

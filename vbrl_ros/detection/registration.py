@@ -62,6 +62,9 @@ _CONVERGENCE_CRITERION = 1e-4  # KISS-ICP default: stop when |dx| < 1e-4
 _CHECK_ITERATIONS = 3  # of the final stage again, to see that it has settled
 # Ground source points are kept at this many voxels (structure at 1.5), see _ground_mask.
 _GROUND_THINNING = 4.0
+# No LiDAR measures farther than this along any axis (the longest-range ones reach ~500 m);
+# points beyond are corrupt and are dropped before storage and verification.
+MAX_POINT_RANGE_M = 1000.0
 
 
 @dataclass(frozen=True)
@@ -347,14 +350,16 @@ def _rigid(T: np.ndarray) -> np.ndarray:
 
 
 def _clean(points: np.ndarray) -> np.ndarray:
-    """(N, 3) float64 C-contiguous finite points (what the KISS-ICP bindings need)."""
+    """(N, 3) float64 C-contiguous points within :data:`MAX_POINT_RANGE_M` (what the KISS-ICP bindings
+    need: far beyond it, voxel and grid indices overflow)."""
     points = np.asarray(points, dtype=np.float64)
     if points.size == 0:
         return np.empty((0, 3))
     if points.ndim != 2 or points.shape[1] < 3:
         raise ValueError(f"points must have shape (N, 3), got {points.shape}")
     points = points[:, :3]
-    return np.ascontiguousarray(points[np.all(np.isfinite(points), axis=1)])
+    # NaN and inf compare False: dropped too
+    return np.ascontiguousarray(points[np.all(np.abs(points) <= MAX_POINT_RANGE_M, axis=1)])
 
 
 def _failure(

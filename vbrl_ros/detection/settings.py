@@ -10,6 +10,11 @@ import math
 from dataclasses import dataclass
 
 
+#: Verification voxel bounds: finer stores every point and no two scans' points lie that close (every
+#: closure would fail); coarser than 10 m leaves too few points to register.
+VOXEL_M = (0.05, 10.0)
+
+
 class SettingsError(ValueError):
     """A setting the detector or the node cannot start with; the message names it."""
 
@@ -39,8 +44,8 @@ class DetectorSettings:
             "min_fitness": (0.0 <= self.min_fitness <= 1.0, "in [0, 1]"),
             "max_closure_distance": (_at_least(self.max_closure_distance, 0) and self.max_closure_distance > 0,
                                      "a positive number of metres"),
-            "verification_voxel": (_at_least(self.verification_voxel, 0) and self.verification_voxel > 0,
-                                   "a positive number"),
+            "verification_voxel": (_at_least(self.verification_voxel, VOXEL_M[0])
+                                   and self.verification_voxel <= VOXEL_M[1], f"in [{VOXEL_M[0]}, {VOXEL_M[1]}] m"),
             "translation_search": (self.translation_search == -1 or (_at_least(self.translation_search, 0)
                                                                       and self.translation_search <= 10),
                                    "-1 (the model's), 0 (off) or a step in (0, 10] metres"),

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from vbrl_ros.index.parameters import SAVED_APART, IndexParameters
+from vbrl_ros.io.npz import INTEGER, NUMBER, TEXT, Member
 
 INDEX_FORMAT = "vbrl_ros.keyframe_index"
 INDEX_FORMAT_VERSION = 3
@@ -27,6 +28,12 @@ _REKEYED_VERSIONS = (2,)  # readable: same descriptors and parameters, keys reco
 #: The integer parameters, in the order a saved index stores them.
 STORED_INTEGERS = tuple(f.name for f in fields(IndexParameters) if f.name not in SAVED_APART)
 _FIRST_PARAMS = 8  # files written before the later parameters existed: their defaults apply
+#: Every array a saved index may hold (names without the prefix), for the file that carries it.
+STATE_MEMBERS = {
+    "format": TEXT, "format_version": INTEGER, "weights": Member("f", 1), "params": Member("iu", 1),
+    "key_clip_sigma": NUMBER, "storage": TEXT, "descriptors": Member("f", 2), "keys": Member("i", 2),
+    "yaw_keys": Member("f", 3), "refine_keys": Member("i", 2),
+}
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,7 +34,7 @@ import numpy as np
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.features.featurizer import Featurizer, FeatureLayout
 from vbrl_ros.io.atomic import atomic_write
-from vbrl_ros.io.npz import foreign_format, one_line, read_npz
+from vbrl_ros.io.npz import INTEGER, NUMBER, TEXT, Member, one_line, read_npz
 from vbrl_ros.model.scoring import WeightedL1Scorer, importance_weights, row_weights
 
 MODEL_FORMAT = "vbrl_ros.model"
@@ -41,6 +42,15 @@ MODEL_FORMAT_VERSION = 1
 #: Acceptance threshold of a model trained without one (no poses, or streamed)
 UNCALIBRATED_DISTANCE_THRESHOLD = 0.5
 _ARRAY_KEYS = ("W", "feature_mean", "feature_scale", "w_modality", "w_voxel")
+#: Every member a model file may hold; others are never read.
+MODEL_MEMBERS = {
+    "format": TEXT, "format_version": INTEGER, "config_json": TEXT, "scenarios_json": TEXT,
+    "metadata_json": TEXT, "lambda1": NUMBER, "lambda2": NUMBER, "W": Member("f", 2),
+    "feature_mean": Member("f", 1), "feature_scale": Member("f", 1), "w_modality": Member("f", 1),
+    "w_voxel": Member("f", 1),
+}
+#: Metadata the detector reads, and the range each must be in when a file gives it.
+METADATA_NUMBERS = {"distance_threshold": (0.0, math.inf), "translation_search": (0.0, 10.0)}
 
 
 class ModelFileError(ValueError):
@@ -88,6 +98,10 @@ class VBRLModel:
                 raise ModelFileError(f"{name} contains NaN or inf")
         if np.any(self.feature_scale <= 0):
             raise ModelFileError("feature_scale must be positive")
+        for name in ("w_modality", "w_voxel"):
+            weights = getattr(self, name)
+            if np.any(weights < 0) or not weights.sum() > 0:
+                raise ModelFileError(f"{name} must be non-negative importances with a positive sum")
 
     # -- using the model ---------------------------------------------------
 
@@ -156,9 +170,7 @@ def load_model(path: str | Path, expected_config: VBRLConfig | None = None) -> V
     mis-scoring.
     """
     path = Path(path)
-    contents = read_npz(path, ModelFileError, "model")
-    if str(contents.get("format", "")) != MODEL_FORMAT:
-        raise ModelFileError(f"{path} is not a vbrl_ros model file ({foreign_format(contents, MODEL_FORMAT)})")
+    contents = read_npz(path, ModelFileError, "model", MODEL_FORMAT, MODEL_MEMBERS)
     version = int(contents.get("format_version", -1))
     if version != MODEL_FORMAT_VERSION:
         raise ModelFileError(
@@ -173,9 +185,7 @@ def load_model(path: str | Path, expected_config: VBRLConfig | None = None) -> V
     if missing:
         raise ModelFileError(f"{path} lacks {', '.join(missing)}")
     try:
-        config = VBRLConfig.from_dict(json.loads(str(contents["config_json"])))
-        scenarios = json.loads(str(contents["scenarios_json"]))
-        metadata = json.loads(str(contents.get("metadata_json", "{}")))
+        config = VBRLConfig.from_dict(_json(str(contents["config_json"]), "config_json"))
     except (ValueError, TypeError) as error:
         raise ModelFileError(f"{path} has an invalid configuration: {one_line(error)}") from None
     if expected_config is not None and config != expected_config:
@@ -185,12 +195,39 @@ def load_model(path: str | Path, expected_config: VBRLConfig | None = None) -> V
     try:
         return VBRLModel(
             config=config,
-            scenarios=[str(s) for s in scenarios],
+            scenarios=_scenarios(str(contents["scenarios_json"])),
             lambda1=float(contents["lambda1"]),
             lambda2=float(contents["lambda2"]),
-            metadata=metadata,
+            metadata=_metadata(str(contents.get("metadata_json", "{}"))),
             **{key: contents[key] for key in _ARRAY_KEYS},
         )
     except ModelFileError as error:
         raise ModelFileError(f"{path}: {error}") from None
 
+
+def _scenarios(text: str) -> list[str]:
+    scenarios = _json(text, "scenarios_json")
+    if not isinstance(scenarios, list) or not all(isinstance(name, str) for name in scenarios):
+        raise ModelFileError("scenarios_json must be a JSON list of names")
+    return scenarios
+
+
+def _metadata(text: str) -> dict[str, Any]:
+    """The training facts; the two the detector reads must be numbers it can use."""
+    metadata = _json(text, "metadata_json")
+    if not isinstance(metadata, dict):
+        raise ModelFileError(f"metadata_json must be a JSON object, got {type(metadata).__name__}")
+    for name, (low, high) in METADATA_NUMBERS.items():
+        value = metadata.get(name, low)
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if not (number and math.isfinite(value) and low <= value <= high):
+            rule = f">= {low:g}" if high == math.inf else f"in [{low:g}, {high:g}]"
+            raise ModelFileError(f"metadata_json: {name} must be a finite number {rule}, got {value!r}")
+    return metadata
+
+
+def _json(text: str, name: str) -> Any:
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError) as error:  # RecursionError: nested too deeply
+        raise ModelFileError(f"{name} is not valid JSON: {one_line(error)}") from None

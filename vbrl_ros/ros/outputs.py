@@ -24,6 +24,7 @@ class NodeStats:
     """Counters and recent timings; written by the callbacks and the worker."""
 
     scans: int = 0
+    between_keyframes: int = 0  # valid or not, too close to the last keyframe to be one
     keyframes: int = 0
     closures: int = 0
     rejected_by_verification: int = 0
@@ -31,6 +32,9 @@ class NodeStats:
     malformed: int = 0
     empty: int = 0
     errors: int = 0
+    failed_saves: int = 0
+    odometry: int = 0
+    bad_odometry: int = 0
     arrivals: deque = field(default_factory=lambda: deque(maxlen=2000))
     latencies_ms: deque = field(default_factory=lambda: deque(maxlen=1000))
 
@@ -62,6 +66,7 @@ def diagnostics_status(stats: NodeStats, database_size: int, session: int) -> Di
     values = {
         "input_rate_hz": f"{stats.input_rate():.2f}",
         "scans_received": stats.scans,
+        "scans_between_keyframes": stats.between_keyframes,
         "keyframes_processed": stats.keyframes,
         "loop_closures": stats.closures,
         "rejected_by_verification": stats.rejected_by_verification,
@@ -69,18 +74,22 @@ def diagnostics_status(stats: NodeStats, database_size: int, session: int) -> Di
         "malformed_scans": stats.malformed,
         "empty_scans": stats.empty,
         "processing_errors": stats.errors,
+        "failed_saves": stats.failed_saves,
+        "odometry_received": stats.odometry,
+        "bad_odometry": stats.bad_odometry,
         "latency_p50_ms": f"{p50:.1f}",
         "latency_p90_ms": f"{p90:.1f}",
         "latency_p99_ms": f"{p99:.1f}",
         "database_size": database_size,
         "session_id": session,
     }
-    problems = stats.malformed + stats.empty + stats.errors + stats.dropped
+    problems = (stats.malformed + stats.empty + stats.errors + stats.dropped + stats.bad_odometry
+                + stats.failed_saves)
     status = DiagnosticStatus(
         name="vbrl_node: loop closure",
         hardware_id="vbrl",
         level=DiagnosticStatus.WARN if problems else DiagnosticStatus.OK,
-        message="dropped or skipped scans (see values)" if problems else "ok",
+        message="dropped or skipped scans or odometry, or failed saves (see values)" if problems else "ok",
     )
     status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
     return status

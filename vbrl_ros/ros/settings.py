@@ -21,6 +21,9 @@ from typing import Any
 from vbrl_ros.detection.settings import DetectorSettings, SettingsError
 from vbrl_ros.index.parameters import IndexParameters
 
+#: Seconds between diagnostics: at most 10 a second (each also carries every keyframe's marker), at least hourly.
+DIAGNOSTICS_PERIOD_S = (0.1, 3600.0)
+
 #: The detector's settings that are node parameters, by the same names.
 DETECTOR_PARAMETERS = tuple(f.name for f in fields(DetectorSettings) if f.name != "session")
 
@@ -32,7 +35,8 @@ DESCRIPTIONS: dict[str, str] = {
                   "travel. Empty: no odometry, a keyframe every keyframe_interval seconds.",
     "model_path": "VBRL model file (.npz, written by vbrl train). Empty: the package's built-in model.",
     "database_path": "keyframe database file (.npz): loaded at start if it exists, saved every save_every "
-                     "keyframes and at shutdown. Empty: keyframes are not kept across restarts.",
+                     "keyframes and at shutdown; the start checks that it can be written. Empty: keyframes "
+                     "are not kept across restarts.",
     "session_id": "session number of this run's keyframes. -1: one more than the largest in the database.",
     "keyframe_distance": "metres of odometry travel between keyframes (with odom_topic).",
     "keyframe_interval": "seconds between keyframes (without odometry).",
@@ -50,7 +54,7 @@ DESCRIPTIONS: dict[str, str] = {
                    "(0 to 1).",
     "max_closure_distance": "verified closures between sensors farther apart than this many metres "
                             "are rejected: the registration may be right, but they are not one place.",
-    "verification_voxel": "voxel size in metres of the stored clouds and of their registration.",
+    "verification_voxel": "voxel size in metres of the stored clouds and of their registration, 0.05 to 10.",
     "translation_search": "metres between the extra viewpoints a query is also described from. 0: off; "
                           "-1: the model's own (1.5 for the built-in model).",
     "save_every": "keyframes between database saves. 0: only at shutdown or on ~/save_database.",
@@ -64,7 +68,7 @@ DESCRIPTIONS: dict[str, str] = {
                      "[query stamp, match stamp].",
     "markers_topic": "visualization_msgs/MarkerArray topic of the keyframes and closures, for RViz.",
     "map_frame": "frame id of the markers.",
-    "diagnostics_period": "seconds between /diagnostics status messages and marker updates.",
+    "diagnostics_period": "seconds between /diagnostics status messages and marker updates, 0.1 to 3600.",
 }
 
 
@@ -131,10 +135,14 @@ class NodeSettings:
 
     def validate(self) -> None:
         """The node's own values (the detector's check themselves)."""
-        for name in ("keyframe_distance", "keyframe_interval", "diagnostics_period"):
+        for name in ("keyframe_distance", "keyframe_interval"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise SettingsError(f"parameter '{name}' must be a positive number, got {value}")
+        low, high = DIAGNOSTICS_PERIOD_S
+        if not low <= self.diagnostics_period <= high:  # NaN fails too
+            raise SettingsError(f"parameter 'diagnostics_period' must be in [{low}, {high}] seconds, "
+                                f"got {self.diagnostics_period}")
         if not (math.isfinite(self.weight_prune) and 0.0 <= self.weight_prune < 1.0):
             raise SettingsError(f"parameter 'weight_prune' must be in [0, 1), got {self.weight_prune}")
         try:

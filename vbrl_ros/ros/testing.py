@@ -177,6 +177,11 @@ class MessageCollector:
         self.close()
 
 
+def diagnostics_values(array: Any) -> dict[str, float]:
+    """The values of a ``DiagnosticArray``'s first status by key, as numbers (vbrl_node's all are)."""
+    return {kv.key: float(kv.value) for kv in array.status[0].values}
+
+
 def collect_messages(node: Any, topic: str, msg_type: type, count: int, timeout: float, qos: Any = None) -> list[Any]:
     """Subscribe to ``topic`` and spin until ``count`` messages arrive or ``timeout`` s pass; return what came."""
     with MessageCollector(node, {topic: msg_type}, qos) as collector:

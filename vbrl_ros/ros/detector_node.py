@@ -1,0 +1,294 @@
+"""The online loop-closure detector as a ROS 2 node (:class:`VbrlNode`; ``vbrl_node`` runs it).
+
+A thin adapter around :class:`~vbrl_ros.detection.detector.LoopClosureDetector`:
+the subscription callback only decides whether a scan is a keyframe and
+drops it into a one-slot mailbox; a worker thread decodes, scores, verifies,
+inserts and publishes. When the worker falls behind, the newest keyframe
+replaces the waiting one and the replaced one is counted as dropped, so no
+queue grows without bound. A bad message is logged, counted and skipped; a
+failed save is logged and counted, and tried again at the next keyframe.
+
+Before anything is loaded, every topic parameter must be a name rclpy accepts and
+``database_path`` must be writable: either stops the start with a line naming it.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
+
+from vbrl_ros.detection.database import KeyframeDatabase
+from vbrl_ros.detection.detector import LoopClosureDetector
+from vbrl_ros.detection.settings import SettingsError
+from vbrl_ros.grids.ground_frame import gravity_rotation
+from vbrl_ros.index.parameters import IndexParameters
+from vbrl_ros.io.atomic import check_writable, remove_stale_temporaries
+from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
+from vbrl_ros.model.builtin import load_default_model
+from vbrl_ros.model.model_file import load_model
+from vbrl_ros.ros.messages import closures_message, lio_sam_message
+from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, pose_matrix
+from vbrl_ros.ros.outputs import NodeStats, diagnostics_status, keyframe_markers
+from vbrl_ros.ros.settings import DESCRIPTIONS, NodeSettings, unknown_parameters
+from vbrl_ros.ros.startup import rcl_error_line
+
+
+#: The parameters that name a topic (odom_topic may be empty: no odometry).
+TOPIC_PARAMETERS = ("cloud_topic", "odom_topic", "loop_closure_topic", "lio_sam_topic", "markers_topic")
+
+
+def stamp_seconds(stamp) -> float:
+    return stamp.sec + 1e-9 * stamp.nanosec
+
+
+class VbrlNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__("vbrl_node", **kwargs)
+        self.settings = self._read_settings()
+        s = self.settings
+        self._check_topics()
+        self._check_database_path()
+        self.model = load_model(s.model_path) if s.model_path else load_default_model()
+        self.database = self._open_database()
+        session = s.session_id if s.session_id >= 0 else self.database.next_session()
+        self.detector = LoopClosureDetector(self.model, self.database,
+                                            replace(s.detector, session=str(session)))
+        self.session = session
+        # compile (or load from cache) the featurizer kernel now, not on the first keyframe
+        self.detector.featurizer.describe(np.zeros((1, 3)))
+        self.stats = NodeStats()
+        self._db_lock = threading.Lock()
+        self._mailbox = threading.Condition()
+        self._pending: tuple[np.ndarray, float, np.ndarray | None, float] | None = None
+        self._stopping = False
+        self._spacing = KeyframeSpacing(s.keyframe_distance, s.keyframe_interval)
+        self._edges: deque[tuple[int, int]] = deque(maxlen=10_000)
+        self._keyframes_since_save = 0
+
+        self.closure_pub = self.create_publisher(Float64MultiArray, s.loop_closure_topic, 10)
+        self.lio_sam_pub = self.create_publisher(Float64MultiArray, s.lio_sam_topic, 10)
+        self.marker_pub = self.create_publisher(MarkerArray, s.markers_topic, 1)
+        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_subscription(PointCloud2, s.cloud_topic, self._on_cloud, qos_profile_sensor_data)
+        if s.odom_topic:
+            self.create_subscription(Odometry, s.odom_topic, self._on_odom, 50)
+        self.create_service(Trigger, "~/save_database", self._on_save)
+        self.create_service(Trigger, "~/clear_database", self._on_clear)
+        self.create_timer(s.diagnostics_period, self._publish_status)
+        self._worker = threading.Thread(target=self._work, name="vbrl-worker", daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f"listening on {s.cloud_topic}; session {session}; {len(self.database)} keyframes in "
+            f"memory; distance threshold {self.detector.distance_threshold:.3f} (lower = more similar)"
+        )
+
+    # -- start-up ------------------------------------------------------------
+
+    def _read_settings(self) -> NodeSettings:
+        values = {}
+        for name, default in NodeSettings.defaults().items():
+            # dynamic typing: a wrongly typed value reaches our validation,
+            # which names the parameter, instead of an rclpy type exception
+            descriptor = ParameterDescriptor(description=DESCRIPTIONS[name], dynamic_typing=True)
+            self.declare_parameter(name, default, descriptor)
+            values[name] = self.get_parameter(name).value
+        self._refuse_unknown_overrides()
+        return NodeSettings.from_values(values)
+
+    def _refuse_unknown_overrides(self) -> None:
+        """Stop on a -p or parameter-file name that no one declared.
+
+        rclpy drops such overrides silently, so a misspelled ``cloud_topics``
+        would leave a robot running on the default topic with nothing said.
+        What rclpy declares itself (use_sim_time, ...) counts as known. The
+        overrides are rclpy's protected ``Node._parameter_overrides``: it has
+        no public way to list them without declaring them all.
+        """
+        unknown = [name for name in self._parameter_overrides if not self.has_parameter(name)]
+        if unknown:
+            raise SettingsError(unknown_parameters(sorted(unknown)))
+
+    def _check_topics(self) -> None:
+        """Stop on a topic name rclpy would refuse (its exception names neither the parameter
+        nor, in one line, the problem)."""
+        for name in TOPIC_PARAMETERS:
+            topic = getattr(self.settings, name)
+            if name == "odom_topic" and not topic:
+                continue
+            try:
+                self.resolve_topic_name(topic)
+            except RuntimeError as error:  # rcl's RCLError
+                reason = rcl_error_line(error).removeprefix("failed to resolve name: ")
+                raise SettingsError(f"parameter '{name}' is not a valid topic name: {topic!r} ({reason})") from None
+
+    def _check_database_path(self) -> None:
+        """Stop now if the database cannot be saved, not with every save failing later."""
+        path = self.settings.database_path
+        if path:
+            try:
+                check_writable(path)
+            except OSError as error:
+                raise SettingsError(f"parameter 'database_path': cannot write {path} "
+                                    f"({error.strerror}: {error.filename})") from None
+
+    def _open_database(self) -> KeyframeDatabase:
+        scorer = self.model.scorer(prune=self.settings.weight_prune)
+        model_id = self.model.identity()
+        path = self.settings.database_path
+        if path:
+            removed = remove_stale_temporaries(path)
+            if removed:
+                self.get_logger().info(f"removed {len(removed)} temporary file(s) that interrupted saves of "
+                                       f"{path} left")
+        if path and Path(path).exists():
+            # a saved database keeps its own storage type (and refuses another prune)
+            return KeyframeDatabase.load(path, scorer, model_id)
+        return KeyframeDatabase(scorer, model_id, IndexParameters(storage=self.settings.descriptor_storage))
+
+    # -- callbacks (executor thread): cheap ------------------------------------
+
+    def _on_odom(self, msg: Odometry) -> None:
+        self.stats.odometry += 1
+        try:
+            pose = pose_matrix(msg)
+        except OdometryError as error:
+            self.stats.bad_odometry += 1
+            self.get_logger().warning(f"odometry skipped: {error}", throttle_duration_sec=5.0)
+            return
+        self._spacing.moved_to(pose)
+
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        now = time.monotonic()
+        self.stats.received(now)
+        stamp = stamp_seconds(msg.header.stamp)
+        if not self._spacing.is_keyframe(stamp):
+            self.stats.between_keyframes += 1
+            return
+        # Decode here, not in the worker: every bad message is then counted as
+        # what it is (instead of vanishing as a "drop" from the mailbox) and
+        # never takes a keyframe slot. Decoding is a few ms; scoring is not.
+        try:
+            points, _ = read_xyz_intensity(msg)
+        except PointCloud2Error as error:
+            self.stats.malformed += 1
+            self.get_logger().warning(f"malformed PointCloud2 skipped: {error}", throttle_duration_sec=5.0)
+            return
+        if len(points) == 0:
+            self.stats.empty += 1
+            self.get_logger().warning("PointCloud2 without finite points skipped", throttle_duration_sec=5.0)
+            return
+        self._spacing.mark(stamp)
+        with self._mailbox:
+            if self._pending is not None:
+                self.stats.dropped += 1  # the worker is behind: keep the newest keyframe only
+            self._pending = (points, stamp, self._spacing.latest_pose, now)
+            self._mailbox.notify()
+
+    # -- worker thread: the real work ------------------------------------------
+
+    def _work(self) -> None:
+        while True:
+            with self._mailbox:
+                while self._pending is None and not self._stopping:
+                    self._mailbox.wait()
+                if self._stopping:
+                    return
+                points, stamp, pose, arrived = self._pending
+                self._pending = None
+            try:
+                self._process(points, stamp, pose, arrived)
+            except Exception as error:  # never let one scan kill the node
+                self.stats.errors += 1
+                self.get_logger().error(f"keyframe skipped after an unexpected error: {error!r}")
+
+    def _process(self, points: np.ndarray, stamp: float, pose: np.ndarray | None, arrived: float) -> None:
+        with self._db_lock:
+            gravity = (gravity_rotation(pose) if self.settings.level_from_odometry and pose is not None
+                       else None)
+            result = self.detector.process_keyframe(points, stamp, pose, gravity)
+        self.stats.keyframe(1e3 * (time.monotonic() - arrived), result)
+        for closure in result.closures:
+            self._edges.append((closure.query_id, closure.match_id))
+        if result.closures:
+            self.closure_pub.publish(closures_message(result.closures))
+            for closure in result.closures:
+                self.lio_sam_pub.publish(lio_sam_message(closure))
+        self._keyframes_since_save += 1
+        if self.settings.save_every and self._keyframes_since_save >= self.settings.save_every:
+            try:
+                self.save_database()
+            except OSError as error:  # e.g. a full disk: the keyframe is kept, the save tried again
+                self.stats.failed_saves += 1
+                self.get_logger().error(f"database not saved: {error}", throttle_duration_sec=5.0)
+
+    # -- persistence ----------------------------------------------------------
+
+    def save_database(self) -> str:
+        if not self.settings.database_path:
+            return "no database_path set: nothing saved"
+        with self._db_lock:
+            self.database.save(self.settings.database_path)
+            self._keyframes_since_save = 0
+            return f"saved {len(self.database)} keyframes to {self.settings.database_path}"
+
+    def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            response.message = self.save_database()
+            response.success = bool(self.settings.database_path)
+        except OSError as error:
+            self.stats.failed_saves += 1
+            response.success, response.message = False, f"save failed: {error}"
+        return response
+
+    def _on_clear(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        with self._db_lock:
+            count = len(self.database)
+            self.database.clear()
+            self._edges.clear()
+        response.success, response.message = True, f"cleared {count} keyframes"
+        return response
+
+    def _publish_status(self) -> None:
+        with self._db_lock:
+            size = len(self.database)
+            markers = keyframe_markers(self.database, self._edges, self.settings.map_frame,
+                                       self.get_clock().now().to_msg())
+        status = diagnostics_status(self.stats, size, self.session)
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status = [status]
+        self.diag_pub.publish(array)
+        if markers is not None:
+            self.marker_pub.publish(markers)
+
+    def shutdown(self) -> bool:
+        """Stop the worker (finishing the keyframe in hand) and save the database; False if that failed."""
+        with self._mailbox:
+            self._stopping = True
+            self._mailbox.notify_all()
+        self._worker.join(timeout=30.0)
+        if not self.settings.database_path:
+            return True
+        # stderr, not the ROS logger: after SIGINT/SIGTERM the context
+        # (and with it /rosout) is already shut down
+        try:
+            print(f"[vbrl_node] {self.save_database()}", file=sys.stderr)
+        except OSError as error:
+            print(f"[vbrl_node] database not saved: {error}", file=sys.stderr)
+            return False
+        return True
