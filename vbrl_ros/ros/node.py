@@ -7,6 +7,7 @@ one later, not with a KeyboardInterrupt traceback from an import.
 
 from __future__ import annotations
 
+import os
 import sys
 
 from vbrl_ros.ros.startup import params_file_problem, rcl_error_line, usage
@@ -17,7 +18,11 @@ def main(argv: list[str] | None = None) -> int:
         return run(list(sys.argv if argv is None else argv))
     except KeyboardInterrupt:  # before rclpy's own signal handling is in place
         print("vbrl_node: interrupted", file=sys.stderr)
-        return 0
+        # Nothing is loaded that needs saving. Leave at once: tearing down half-imported
+        # extension modules and rclpy's signal hooks now may re-raise the SIGINT (rc -2).
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
 
 
 def run(argv: list[str]) -> int:
