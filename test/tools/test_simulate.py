@@ -17,7 +17,7 @@ from vbrl_ros.tools import simulate as cli
 TINY = ["--blocks", "2", "2", "--beams", "16", "--columns", "360", "--scans", "4", "--spacing", "3",
         "--no-progress"]
 KITTI_LOW = [*TINY, "--format", "kitti", "--sensor-height", "0.8"]
-DEGRADED = ["--blocked-azimuth", "150", "-150", "--thin-voxel", "0.5", "--no-ground", "--lane-offset", "1.5",
+DEGRADED = ["--blocked-azimuth", "150", "-150", "--thin-voxel", "0.5", "--no-ground", "--lane-offset", "0.8",
             "--lane-wander", "1.5"]
 
 
@@ -112,7 +112,7 @@ def _kitti(folder):
 def test_degraded_outputs_are_what_the_library_renders(tmp_path):
     assert _run([str(tmp_path), *KITTI_LOW, *DEGRADED, "--seed", "3", "4"]) == 0
     town = generate_town(TownConfig(blocks_x=2, blocks_y=2), 0)
-    config = RouteConfig(spacing_m=3.0, max_scans=4, sensor_height_m=0.8, lane_offset_m=1.5, lane_wander_m=1.5)
+    config = RouteConfig(spacing_m=3.0, max_scans=4, sensor_height_m=0.8, lane_offset_m=0.8, lane_wander_m=1.5)
     lidar = LidarConfig(beams=16, columns=360, blocked_azimuth_deg=(150.0, -150.0))
     keyframes = KeyframeFilter(thin_voxel_m=0.5, remove_ground=True)
     poses = {}
@@ -132,7 +132,7 @@ def test_degraded_outputs_are_what_the_library_renders(tmp_path):
         sidecar = json.loads((tmp_path / f"summer_clear_seed{seed}.sim.json").read_text())
         assert sidecar["lidar"]["blocked_azimuth_deg"] == [150.0, -150.0]
         assert sidecar["keyframes"] == {"thin_voxel_m": 0.5, "remove_ground": True}
-        assert (sidecar["route"]["lane_offset_m"], sidecar["route"]["lane_wander_m"]) == (1.5, 1.5)
+        assert (sidecar["route"]["lane_offset_m"], sidecar["route"]["lane_wander_m"]) == (0.8, 1.5)
         assert sidecar["route"]["lane_wander_seed"] == seed
     lateral = np.linalg.norm(poses[3][:, :2, 3] - poses[4][:, :2, 3], axis=1)
     assert 0.05 < lateral.max() < 3.0  # two sessions, two lines

@@ -86,6 +86,8 @@ class RouteConfig:
     ``lane_wander_m`` (at most 3 m) is the amplitude of a smooth lateral wander
     of the driven line about its lane, drawn from ``lane_wander_seed``; give
     sessions different seeds so they drive different lines (module docstring).
+    Parked cars begin about 3 m right of a street's centre line, so
+    ``lane_offset_m + lane_wander_m`` beyond ~2.5 m can put the sensor inside one.
     """
 
     loops: int = 4

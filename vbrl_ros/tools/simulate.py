@@ -77,7 +77,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     route.add_argument("--lane-wander", type=float, default=0.0, metavar="M",
                        help="amplitude (m, at most 3) of a smooth lateral wander about the lane, correlated over "
                             "~30 m of path and drawn from the run seed: sessions with different --seed drive "
-                            "different lines")
+                            "different lines; keep --lane-offset + --lane-wander under ~2.5 (parked cars)")
 
     lidar = parser.add_argument_group("lidar")
     lidar.add_argument("--beams", type=int, default=64, help="number of beams (rows)")
