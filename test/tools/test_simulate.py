@@ -1,11 +1,13 @@
-"""``vbrl simulate``: options, outputs per scenario, refusal to overwrite."""
+"""``vbrl simulate``: options, outputs per scenario, refusal to overwrite, degradations."""
 
 import argparse
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
+from vbrl_ros.simulator.keyframes import KeyframeFilter
 from vbrl_ros.simulator.lidar import LidarConfig
 from vbrl_ros.simulator.route import RouteConfig, make_route
 from vbrl_ros.simulator.run import simulate_run
@@ -14,6 +16,9 @@ from vbrl_ros.tools import simulate as cli
 
 TINY = ["--blocks", "2", "2", "--beams", "16", "--columns", "360", "--scans", "4", "--spacing", "3",
         "--no-progress"]
+KITTI_LOW = [*TINY, "--format", "kitti", "--sensor-height", "0.8"]
+DEGRADED = ["--blocked-azimuth", "150", "-150", "--thin-voxel", "0.5", "--no-ground", "--lane-offset", "0.8",
+            "--lane-wander", "1.5"]
 
 
 def _parser():
@@ -32,7 +37,9 @@ def test_help_documents_every_option(capsys):
         _parser().parse_args(["simulate", "--help"])
     text = capsys.readouterr().out
     for option in ("--format", "--scenario", "--seed", "--town-seed", "--blocks", "--loops", "--spacing", "--rate",
-                   "--scans", "--sample-offset", "--beams", "--columns", "--vertical-fov", "winter_snow", "kitti", "sqlite3", "ros1"):
+                   "--scans", "--sample-offset", "--beams", "--columns", "--vertical-fov", "winter_snow", "kitti",
+                   "sqlite3", "ros1", "--blocked-azimuth FROM TO", "--thin-voxel V", "--no-ground", "--lane-offset M",
+                   "--lane-wander M"):
         assert option in text
 
 
@@ -90,3 +97,65 @@ def test_the_output_is_required_and_shown_so(capsys):
     assert "required: output" in capsys.readouterr().err
     usage = _parser()._subparsers._group_actions[0].choices["simulate"].format_usage()
     assert " output" in usage and "[output]" not in usage
+
+
+# -- degradations: blocked wedge, thinned ground-free keyframes, lane offset and wander --
+
+
+def _kitti(folder):
+    bins = sorted((folder / "velodyne").glob("*.bin"))
+    clouds = [np.fromfile(path, dtype="<f4").reshape(-1, 4) for path in bins]
+    poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
+    return clouds, poses
+
+
+def test_degraded_outputs_are_what_the_library_renders(tmp_path):
+    assert _run([str(tmp_path), *KITTI_LOW, *DEGRADED, "--seed", "3", "4"]) == 0
+    town = generate_town(TownConfig(blocks_x=2, blocks_y=2), 0)
+    config = RouteConfig(spacing_m=3.0, max_scans=4, sensor_height_m=0.8, lane_offset_m=0.8, lane_wander_m=1.5)
+    lidar = LidarConfig(beams=16, columns=360, blocked_azimuth_deg=(150.0, -150.0))
+    keyframes = KeyframeFilter(thin_voxel_m=0.5, remove_ground=True)
+    poses = {}
+    for seed in (3, 4):
+        clouds, poses[seed] = _kitti(tmp_path / f"summer_clear_seed{seed}")
+        route = make_route(town, replace(config, lane_wander_seed=seed))  # the wander is the run seed's
+        np.testing.assert_allclose(poses[seed], route.poses[:, :3], atol=1e-6)
+        expected = simulate_run(town, route, lidar, "summer_clear", seed, keyframes)
+        for index, cloud in enumerate(clouds):
+            np.testing.assert_array_equal(cloud, expected.scan(index).points)
+            azimuth = np.degrees(np.arctan2(cloud[:, 1], cloud[:, 0]))
+            assert not np.any(np.abs(azimuth) >= 150.0)  # nothing in the 60 degrees behind
+            voxels = np.floor(cloud[:, :3] / 0.5).astype(np.int64)
+            assert len(np.unique(voxels, axis=0)) == len(voxels)
+            world_z = cloud[:, :3].astype(np.float64) @ poses[seed][index][:, :3].T[:, 2] + poses[seed][index][2, 3]
+            assert np.mean(np.abs(world_z) < 0.05) < 0.05  # the ground (z = 0) is gone
+        sidecar = json.loads((tmp_path / f"summer_clear_seed{seed}.sim.json").read_text())
+        assert sidecar["lidar"]["blocked_azimuth_deg"] == [150.0, -150.0]
+        assert sidecar["keyframes"] == {"thin_voxel_m": 0.5, "remove_ground": True}
+        assert (sidecar["route"]["lane_offset_m"], sidecar["route"]["lane_wander_m"]) == (0.8, 1.5)
+        assert sidecar["route"]["lane_wander_seed"] == seed
+    lateral = np.linalg.norm(poses[3][:, :2, 3] - poses[4][:, :2, 3], axis=1)
+    assert 0.05 < lateral.max() < 3.0  # two sessions, two lines
+
+
+def test_defaults_write_the_plain_scans_and_record_the_options_off(tmp_path):
+    assert _run([str(tmp_path), *KITTI_LOW]) == 0
+    clouds, _ = _kitti(tmp_path / "summer_clear")
+    town = generate_town(TownConfig(blocks_x=2, blocks_y=2), 0)
+    route = make_route(town, RouteConfig(spacing_m=3.0, max_scans=4, sensor_height_m=0.8))
+    np.testing.assert_array_equal(clouds[2], simulate_run(town, route, LidarConfig(beams=16, columns=360),
+                                                          "summer_clear", 1).scan(2).points)
+    sidecar = json.loads((tmp_path / "summer_clear.sim.json").read_text())
+    assert sidecar["keyframes"] == {"thin_voxel_m": None, "remove_ground": False}
+    assert sidecar["lidar"]["blocked_azimuth_deg"] is None
+    assert (sidecar["route"]["lane_wander_m"], sidecar["route"]["lane_wander_seed"]) == (0.0, 0)
+
+
+@pytest.mark.parametrize(("option", "field"), [(["--blocked-azimuth", "10", "10"], "blocked_azimuth_deg"),
+                                               (["--thin-voxel", "0"], "thin_voxel_m"),
+                                               (["--lane-wander", "4"], "lane_wander_m"),
+                                               (["--lane-offset", "-1"], "lane_offset_m")])
+def test_bad_values_fail_before_anything_is_written(tmp_path, option, field):
+    with pytest.raises(ValueError, match=field):
+        _run([str(tmp_path / "out"), *KITTI_LOW, *option])
+    assert not (tmp_path / "out").exists()

@@ -14,12 +14,14 @@ evaluation on known ground truth)::
 
 Modules: :mod:`.geometry` (ray-primitive intersection), :mod:`.town`,
 :mod:`.scene` (nearest-hit ray cast), :mod:`.route`, :mod:`.lidar` (sensor model, culling, rendering),
-:mod:`.scenarios` (season / weather / traffic), :mod:`.run` (lazy sessions);
+:mod:`.scenarios` (season / weather / traffic), :mod:`.keyframes` (thinned, ground-free
+keyframes as SLAM front-ends publish them), :mod:`.run` (lazy sessions);
 ``vbrl simulate`` is :mod:`vbrl_ros.tools.simulate`.
 """
 
 from .geometry import Boxes, Cylinders, Ellipsoids, Material, PrimitiveKind
 from .scene import Hits, Scene
+from .keyframes import KeyframeFilter
 from .lidar import LidarConfig, WeatherEffects, render_scan
 from .route import Route, RouteConfig, make_route
 from .run import PointClouds, Scan, SimulatedRun, simulate_run
@@ -27,8 +29,8 @@ from .scenarios import SCENARIO_PRESETS, SEASONS, WEATHER, Scenario
 from .town import Town, TownConfig, generate_town
 
 __all__ = [
-    "Boxes", "Cylinders", "Ellipsoids", "Hits", "LidarConfig", "Material", "PointClouds", "PrimitiveKind",
-    "Route", "RouteConfig", "SCENARIO_PRESETS", "SEASONS", "Scan", "Scenario", "Scene", "SimulatedRun",
-    "Town", "TownConfig", "WEATHER", "WeatherEffects", "generate_town", "make_route", "render_scan",
-    "simulate_run",
+    "Boxes", "Cylinders", "Ellipsoids", "Hits", "KeyframeFilter", "LidarConfig", "Material", "PointClouds",
+    "PrimitiveKind", "Route", "RouteConfig", "SCENARIO_PRESETS", "SEASONS", "Scan", "Scenario", "Scene",
+    "SimulatedRun", "Town", "TownConfig", "WEATHER", "WeatherEffects", "generate_town", "make_route",
+    "render_scan", "simulate_run",
 ]

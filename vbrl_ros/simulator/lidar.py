@@ -36,6 +36,11 @@ level rings. What reads the points' geometry (voxel grids, ground fits,
 registration) sees a tilted sensor; what relies on the ring structure
 (range images, per-ring ground segmentation) sees the difference. Exactly
 level poses take the direct path, unchanged.
+
+A sensor partly hidden by its own robot (a mast, the body) is modelled by
+``LidarConfig.blocked_azimuth_deg``: every return whose azimuth in the sensor
+frame lies in that wedge is dropped after rendering, so the rest of the scan
+is exactly the unblocked scan.
 """
 
 from __future__ import annotations
@@ -62,7 +67,13 @@ _SINGLE_BEAM_STEP_DEG = 0.4  # elevation spacing of the level render of a tilted
 
 @dataclass(frozen=True)
 class LidarConfig:
-    """Sensor model. ``vertical_fov_deg=None`` picks the default for ``beams``."""
+    """Sensor model. ``vertical_fov_deg=None`` picks the default for ``beams``.
+
+    ``blocked_azimuth_deg=(start, end)`` is a wedge the sensor cannot see, in
+    degrees of sensor-frame azimuth (0 forward, counter-clockwise positive),
+    swept counter-clockwise from ``start`` to ``end``: ``(150, -150)`` blocks
+    the 60 degrees straight behind. ``None`` blocks nothing.
+    """
 
     beams: int = 64
     columns: int = 1800
@@ -71,6 +82,7 @@ class LidarConfig:
     min_range_m: float = 0.5
     range_noise_std_m: float = 0.02
     intensity_noise_std: float = 0.02
+    blocked_azimuth_deg: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.beams, int) or not 1 <= self.beams <= 512:
@@ -92,6 +104,20 @@ class LidarConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"LidarConfig.{name} must be a non-negative number, got {value!r}")
+        if self.blocked_azimuth_deg is not None:
+            wedge = tuple(float(v) for v in self.blocked_azimuth_deg)
+            if len(wedge) != 2 or not all(-180.0 <= v <= 180.0 for v in wedge) or _wedge_width(wedge) == 0:
+                raise ValueError("LidarConfig.blocked_azimuth_deg must be (start, end) in [-180, 180] degrees "
+                                 f"spanning less than a full turn, got {self.blocked_azimuth_deg!r}")
+            object.__setattr__(self, "blocked_azimuth_deg", wedge)
+
+    def sees(self, xyz: np.ndarray) -> np.ndarray:
+        """(N,) bool: the sensor-frame points ``xyz`` lie outside the blocked wedge."""
+        if self.blocked_azimuth_deg is None:
+            return np.ones(len(xyz), dtype=bool)
+        start = self.blocked_azimuth_deg[0]
+        azimuth = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
+        return (azimuth - start) % 360.0 > _wedge_width(self.blocked_azimuth_deg)
 
     @property
     def n_rays(self) -> int:
@@ -109,6 +135,11 @@ class LidarConfig:
     def directions(self) -> np.ndarray:
         """(beams * columns, 3) unit ray directions in the sensor frame, row-major."""
         return _directions(self.beams, self.columns, self.vertical_fov_deg)  # type: ignore[arg-type]
+
+
+def _wedge_width(wedge: tuple[float, float]) -> float:
+    """Degrees swept counter-clockwise from ``wedge[0]`` to ``wedge[1]``, in [0, 360)."""
+    return (wedge[1] - wedge[0]) % 360.0
 
 
 @lru_cache(maxsize=8)
@@ -236,7 +267,7 @@ def render_scan(
     """Render one scan from ``pose`` (T_world_lidar, level or tilted by at most ``MAX_TILT_DEG``).
 
     Returns ``(points, labels, rings)``: (N, 4) float32 x, y, z, intensity in
-    the sensor frame (misses dropped, intensity in [0, 1]), (N,) uint8
+    the sensor frame (misses and the blocked wedge dropped, intensity in [0, 1]), (N,) uint8
     :class:`~.geometry.Material` of each point, (N,) uint16 beam index. A
     tilted pose is rendered through a widened level sensor (module docstring).
     """
@@ -253,8 +284,14 @@ def render_scan(
     weather = weather or WeatherEffects()
     if tilt <= _LEVEL_TILT_RAD:
         xyz, intensity, labels, rows = _render_level(scene, origin, rotation, lidar, rng, weather)
-        return _assemble(xyz, intensity), labels, rows.astype(np.uint16)
-    return _render_tilted(scene, origin, rotation, tilt, lidar, rng, weather)
+        points, rings = _assemble(xyz, intensity), rows.astype(np.uint16)
+    else:
+        points, labels, rings = _render_tilted(scene, origin, rotation, tilt, lidar, rng, weather)
+    if lidar.blocked_azimuth_deg is None:
+        return points, labels, rings
+    # Dropped after rendering: every ray still draws its noise, so the visible part is the unblocked scan.
+    seen = lidar.sees(points)
+    return points[seen], labels[seen], rings[seen]
 
 
 def tilt_angle(rotation: np.ndarray) -> float:

@@ -24,6 +24,13 @@ densely, Gaussian-smoothed (rounded corners, smooth yaw) and driven at
 ``speed_mps``, slowing where the lateral acceleration would exceed
 ``max_lateral_accel``. Scans are taken every ``spacing_m`` metres or at
 ``rate_hz`` -- exactly one of the two.
+
+No driver holds a lane to the centimetre, and two sessions of the same route
+differ sideways by a metre or more. ``lane_wander_m`` moves the smoothed line
+sideways by ``lane_wander_m * tanh(g(s))``, where ``g`` is a unit-variance
+Gaussian process over the path length ``s`` with a correlation length of
+``WANDER_CORRELATION_M`` drawn from ``lane_wander_seed``: smooth, within
+the amplitude, and different for every seed. The poses follow the wandering line.
 """
 
 from __future__ import annotations
@@ -41,6 +48,11 @@ _TEMPLATES = (("A", 1, 1, "x"), ("B", 1, -1, "y"), ("C", 1, 1, "y"), ("D", -1, 1
 # Loop sizes (w, h) in blocks, cycled; clipped to the room around home.
 _SIZES = ((2, 1), (2, 1), (1, 1), (1, 2), (2, 2), (1, 1), (2, 1), (1, 2))
 _DENSE_STEP_M = 0.25
+#: Path length over which the lateral wander stays correlated (exp(-d^2 / 2 l^2) at distance d).
+WANDER_CORRELATION_M = 30.0
+#: Largest wander amplitude: beyond it the inner side of a rounded corner tightens towards a cusp.
+MAX_LANE_WANDER_M = 3.0
+_WANDER_SALT = 0x1A7E  # the wander's own random stream, apart from the town's and the run's
 #: Limit on the mount's roll and pitch each; both at the limit tilt the sensor by 60
 #: degrees, what :func:`.lidar.render_scan` renders at most.
 MAX_MOUNT_TILT_DEG = 45.0
@@ -71,6 +83,11 @@ class RouteConfig:
     R = Rz(yaw) Ry(pitch) Rx(roll), right-handed about the sensor's x (forward)
     and y (left) axes, so a positive roll lifts the left side and a positive
     pitch tips the front down. Each lies in [-45, 45] degrees.
+    ``lane_wander_m`` (at most 3 m) is the amplitude of a smooth lateral wander
+    of the driven line about its lane, drawn from ``lane_wander_seed``; give
+    sessions different seeds so they drive different lines (module docstring).
+    Parked cars begin about 3 m right of a street's centre line, so
+    ``lane_offset_m + lane_wander_m`` beyond ~2.5 m can put the sensor inside one.
     """
 
     loops: int = 4
@@ -79,6 +96,8 @@ class RouteConfig:
     speed_mps: float = 8.0
     max_lateral_accel: float = 2.0
     lane_offset_m: float = 1.0
+    lane_wander_m: float = 0.0
+    lane_wander_seed: int = 0
     corner_smoothing_m: float = 5.0
     sensor_height_m: float = 1.8
     sensor_roll_deg: float = 0.0
@@ -105,6 +124,12 @@ class RouteConfig:
                                  f"{MAX_MOUNT_TILT_DEG:g}] degrees, got {value!r}")
         if not isinstance(self.lane_offset_m, (int, float)) or not 0 <= self.lane_offset_m <= 5:
             raise ValueError(f"RouteConfig.lane_offset_m must lie in [0, 5], got {self.lane_offset_m!r}")
+        if not isinstance(self.lane_wander_m, (int, float)) or not 0 <= self.lane_wander_m <= MAX_LANE_WANDER_M:
+            raise ValueError(f"RouteConfig.lane_wander_m must lie in [0, {MAX_LANE_WANDER_M:g}], "
+                             f"got {self.lane_wander_m!r}")
+        if not isinstance(self.lane_wander_seed, (int, np.integer)) or self.lane_wander_seed < 0:
+            raise ValueError(f"RouteConfig.lane_wander_seed must be a non-negative integer, "
+                             f"got {self.lane_wander_seed!r}")
         if not isinstance(self.sample_offset_m, (int, float)) or not 0 <= self.sample_offset_m < 1e4:
             raise ValueError(f"RouteConfig.sample_offset_m must be a non-negative number, got {self.sample_offset_m!r}")
         if self.max_scans is not None and (not isinstance(self.max_scans, int) or self.max_scans < 1):
@@ -194,6 +219,19 @@ def _lane_polyline(points: np.ndarray, offset: float) -> np.ndarray:
     return np.array(shifted)
 
 
+def _wander(xy: np.ndarray, amplitude: float, seed: int) -> np.ndarray:
+    """Move the dense path ``xy`` (points ``_DENSE_STEP_M`` apart) sideways by the lateral wander."""
+    sigma = WANDER_CORRELATION_M / math.sqrt(2.0) / _DENSE_STEP_M
+    white = np.random.default_rng([seed, _WANDER_SALT]).standard_normal(len(xy))
+    process = gaussian_filter1d(white, sigma, mode="reflect")
+    # White noise smoothed by a unit-area Gaussian of width sigma has variance 1 / (2 sqrt(pi) sigma).
+    process *= math.sqrt(2.0 * math.sqrt(math.pi) * sigma)
+    tangent = np.gradient(xy, axis=0)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    right = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
+    return xy + (amplitude * np.tanh(process))[:, None] * right
+
+
 def mount_rotation(roll_deg: float, pitch_deg: float) -> np.ndarray:
     """Ry(pitch) Rx(roll): the tilted sensor's axes in the level, heading-aligned frame."""
     roll, pitch = math.radians(roll_deg), math.radians(pitch_deg)
@@ -202,7 +240,7 @@ def mount_rotation(roll_deg: float, pitch_deg: float) -> np.ndarray:
 
 
 def make_route(town: Town, config: RouteConfig | None = None) -> Route:
-    """Sample the drive of ``config`` through ``town`` (deterministic, no randomness)."""
+    """Sample the drive of ``config`` through ``town`` (deterministic: the wander is seeded by the config)."""
     cfg = config or RouteConfig()
     nodes, owner, names = _loop_nodes(town, cfg)
     corners = np.array([town.nodes[i, j] for i, j in nodes])
@@ -214,6 +252,8 @@ def make_route(town: Town, config: RouteConfig | None = None) -> Route:
     s_dense = np.arange(0.0, s_corner[-1], _DENSE_STEP_M)
     xy = np.stack([np.interp(s_dense, s_corner, lane[:, 0]), np.interp(s_dense, s_corner, lane[:, 1])], axis=1)
     xy = gaussian_filter1d(xy, cfg.corner_smoothing_m / _DENSE_STEP_M, axis=0, mode="nearest")
+    if cfg.lane_wander_m > 0:  # without wander the line stays bit-identical
+        xy = _wander(xy, cfg.lane_wander_m, cfg.lane_wander_seed)
     dense_loop = np.searchsorted(s_corner, s_dense, side="right") - 1
     dense_loop = np.asarray(owner)[np.clip(dense_loop + 1, 0, len(owner) - 1)]
 

@@ -4,7 +4,9 @@ Scans are rendered lazily and are random-access: ``run.scan(i)`` is the same
 array whether scans are read in order or not, because every scan draws its
 noise from its own generator seeded by ``(run seed, scenario, i)``. Run-level
 randomness (parked cars, traffic) comes from ``(run seed, scenario)``. So the
-same ``(town seed, run seed, scenario)`` gives bit-identical scans.
+same ``(town seed, run seed, scenario)`` gives bit-identical scans. A
+:class:`~.keyframes.KeyframeFilter` turns each rendered scan into the sparse
+keyframe a SLAM front-end would publish; it draws no randomness.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from typing import overload
 import numpy as np
 
 from .geometry import Boxes, Cylinders, Ellipsoids, Material
+from .keyframes import KeyframeFilter
 from .scene import Scene
 from .lidar import LidarConfig, render_scan
 from .route import Route
@@ -63,13 +66,15 @@ class SimulatedRun(Sequence[Scan]):
     ``len(run)``, ``run[i]`` / ``run.scan(i)`` (renders scan i), iteration
     (renders in order), ``run.poses`` (n, 4, 4) T_world_lidar, ``run.stamps``
     (n,) seconds, ``run.point_clouds()`` (lazy sequence of the (N, 4) arrays,
-    what the bag and KITTI writers take).
+    what the bag and KITTI writers take). ``keyframes`` filters every scan.
     """
 
-    def __init__(self, town: Town, route: Route, lidar: LidarConfig, scenario: Scenario, seed: int) -> None:
+    def __init__(self, town: Town, route: Route, lidar: LidarConfig, scenario: Scenario, seed: int,
+                 keyframes: KeyframeFilter | None = None) -> None:
         if not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
         self.town, self.route, self.lidar, self.scenario, self.seed = town, route, lidar, scenario, int(seed)
+        self.keyframes = keyframes or KeyframeFilter()
         run_rng = np.random.default_rng([self.seed, scenario.seed_salt, 1])
         parked = parked_cars_for_run(town, scenario, run_rng)
         self.moving_cars = sample_moving_cars(town, scenario, run_rng)
@@ -107,6 +112,9 @@ class SimulatedRun(Sequence[Scan]):
         pose = self.poses[index]
         points, labels, rings = render_scan(self.scene_at(index), pose, self.lidar, rng,
                                             self.scenario.weather_effects)
+        if not self.keyframes.keeps_everything:
+            kept = self.keyframes.keep(points, labels)
+            points, labels, rings = points[kept], labels[kept], rings[kept]
         return Scan(index=index, stamp=float(self.stamps[index]), pose=pose.copy(), points=points, labels=labels,
                     rings=rings)
 
@@ -158,8 +166,10 @@ class PointClouds(Sequence[np.ndarray]):
 
 
 def simulate_run(town: Town, route: Route, lidar: LidarConfig | None = None,
-                 scenario: Scenario | str = "summer_clear", seed: int = 0) -> SimulatedRun:
-    """A lazily rendered session; ``scenario`` is a :class:`Scenario` or a name for ``Scenario.from_name``."""
+                 scenario: Scenario | str = "summer_clear", seed: int = 0,
+                 keyframes: KeyframeFilter | None = None) -> SimulatedRun:
+    """A lazily rendered session; ``scenario`` is a :class:`Scenario` or a name for ``Scenario.from_name``;
+    ``keyframes`` thins the scans or removes their ground (default: the scans as rendered)."""
     if isinstance(scenario, str):
         scenario = Scenario.from_name(scenario)
-    return SimulatedRun(town, route, lidar or LidarConfig(), scenario, seed)
+    return SimulatedRun(town, route, lidar or LidarConfig(), scenario, seed, keyframes)

@@ -12,9 +12,10 @@ import argparse
 import json
 import math
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
+from vbrl_ros.simulator.keyframes import KeyframeFilter
 from vbrl_ros.simulator.lidar import LidarConfig, level_cover, tilt_angle
 from vbrl_ros.simulator.route import RouteConfig, make_route, mount_rotation
 from vbrl_ros.simulator.run import SimulatedRun, simulate_run
@@ -70,6 +71,13 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                        help="shift of the scan positions along the path (m); give sessions different offsets "
                             "so they do not scan from the same spots")
     route.add_argument("--scans", type=int, default=None, help="stop after this many scans (default: whole route)")
+    route.add_argument("--lane-offset", type=float, default=1.0, metavar="M",
+                       help="lane centre to the right of the street's centre line (m); streets driven both ways "
+                            "are revisited 2*M apart")
+    route.add_argument("--lane-wander", type=float, default=0.0, metavar="M",
+                       help="amplitude (m, at most 3) of a smooth lateral wander about the lane, correlated over "
+                            "~30 m of path and drawn from the run seed: sessions with different --seed drive "
+                            "different lines; keep --lane-offset + --lane-wander under ~2.5 (parked cars)")
 
     lidar = parser.add_argument_group("lidar")
     lidar.add_argument("--beams", type=int, default=64, help="number of beams (rows)")
@@ -79,6 +87,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                             "32: -30..10, 64: -25..15, 128: -22.5..22.5)")
     lidar.add_argument("--max-range", type=float, default=100.0, help="maximum range (m)")
     lidar.add_argument("--range-noise", type=float, default=0.02, help="range noise std (m), before weather")
+    lidar.add_argument("--blocked-azimuth", nargs=2, type=float, default=None, metavar=("FROM", "TO"),
+                       help="wedge the sensor cannot see (a mast, the robot's body): sensor-frame azimuth in "
+                            "degrees (0 forward, 90 left), swept counter-clockwise from FROM to TO; e.g. "
+                            "150 -150 hides the 60 degrees behind")
 
     mount = parser.add_argument_group("sensor mount (the poses written include it)")
     mount.add_argument("--sensor-height", type=float, default=1.8, metavar="M",
@@ -89,6 +101,14 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                             "lifts the left side, positive pitch tips the front down (e.g. 0 20 for a "
                             "hand-held sensor pointed at the ground); a tilted sensor is rendered as a level "
                             "one with a widened field of view, cropped to its own")
+
+    keyframes = parser.add_argument_group("keyframe clouds (as SLAM front-ends publish them)")
+    keyframes.add_argument("--thin-voxel", type=float, default=None, metavar="V",
+                           help="keep one point per V-metre voxel of the sensor frame (the return nearest the "
+                                "voxel's centroid)")
+    keyframes.add_argument("--no-ground", action="store_true",
+                           help="remove every return from the ground surface (the simulator's exact labels), "
+                                "before thinning")
 
     ros = parser.add_argument_group("bag topics (ROS formats)")
     ros.add_argument("--cloud-topic", default="/points", help="PointCloud2 topic")
@@ -140,7 +160,8 @@ def _describe(run: SimulatedRun, town_config: TownConfig, route_config: RouteCon
     return {
         "town_seed": run.town.seed, "run_seed": run.seed, "scenario": asdict(run.scenario),
         "town": asdict(town_config), "route": asdict(route_config), "lidar": asdict(run.lidar),
-        "scans": len(run), "route_length_m": run.route.length_m, "loops": list(run.route.loop_names),
+        "keyframes": asdict(run.keyframes), "scans": len(run), "route_length_m": run.route.length_m,
+        "loops": list(run.route.loop_names),
     }
 
 
@@ -154,10 +175,13 @@ def run(args: argparse.Namespace) -> int:
     route_config = RouteConfig(loops=args.loops, spacing_m=spacing, rate_hz=args.rate, speed_mps=args.speed,
                                sample_offset_m=args.sample_offset, max_scans=args.scans,
                                sensor_height_m=args.sensor_height, sensor_roll_deg=args.tilt[0],
-                               sensor_pitch_deg=args.tilt[1])
+                               sensor_pitch_deg=args.tilt[1], lane_offset_m=args.lane_offset,
+                               lane_wander_m=args.lane_wander)
     lidar = LidarConfig(beams=args.beams, columns=args.columns,
                         vertical_fov_deg=tuple(args.vertical_fov) if args.vertical_fov else None,
-                        max_range_m=args.max_range, range_noise_std_m=args.range_noise)
+                        max_range_m=args.max_range, range_noise_std_m=args.range_noise,
+                        blocked_azimuth_deg=tuple(args.blocked_azimuth) if args.blocked_azimuth else None)
+    keyframes = KeyframeFilter(thin_voxel_m=args.thin_voxel, remove_ground=args.no_ground)
     tilt = tilt_angle(mount_rotation(route_config.sensor_roll_deg, route_config.sensor_pitch_deg))
     if tilt > 0:  # a tilt too large for the beam count fails here, not after the first outputs
         level_cover(lidar, tilt)
@@ -169,17 +193,21 @@ def run(args: argparse.Namespace) -> int:
         raise FileExistsError(f"output exists already, not overwriting: {', '.join(existing)}")
 
     town = generate_town(town_config, args.town_seed)
-    route = make_route(town, route_config)
+    # The wander is drawn from the run seed; without it every job drives the same route.
+    job_routes = [replace(route_config, lane_wander_seed=seed) if route_config.lane_wander_m > 0 else route_config
+                  for _, seed, _ in jobs]
+    routes = {config: make_route(town, config) for config in dict.fromkeys(job_routes)}
+    route = routes[job_routes[0]]
     print(f"town {args.blocks[0]}x{args.blocks[1]} blocks (seed {args.town_seed}), route {route.length_m:.0f} m "
           f"in {len(route.loop_names)} loops, {len(route)} scans of {lidar.beams}x{lidar.columns} rays, "
           f"sensor {route_config.sensor_height_m:g} m up, tilted {math.degrees(tilt):.1f} deg")
     args.output.mkdir(parents=True, exist_ok=True)
-    for (scenario, seed, name), path in zip(jobs, paths):
-        sim = simulate_run(town, route, lidar, scenario, seed)
+    for (scenario, seed, name), path, config in zip(jobs, paths, job_routes):
+        sim = simulate_run(town, routes[config], lidar, scenario, seed, keyframes)
         started = time.perf_counter()
         written = write_run(sim, path, args.format, progress=not args.no_progress, cloud_topic=args.cloud_topic,
                             odom_topic=args.odom_topic, frame_id=args.frame_id)
         sidecar = args.output / f"{name}.sim.json"
-        sidecar.write_text(json.dumps(_describe(sim, town_config, route_config), indent=2) + "\n")
+        sidecar.write_text(json.dumps(_describe(sim, town_config, config), indent=2) + "\n")
         print(f"wrote {written} ({len(sim)} scans, {time.perf_counter() - started:.1f} s)")
     return 0
