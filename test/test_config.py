@@ -34,6 +34,8 @@ def test_bad_grid_values_name_the_field(kwargs, name):
         ({"hog_orientations": 0}, "features.hog_orientations"),
         ({"hog_cells": 3}, "features.hog_cells"),
         ({"min_points": 0}, "features.min_points"),
+        ({"mirror_blind_wedges": 1}, "features.mirror_blind_wedges"),
+        ({"mirror_blind_wedges": True}, "features.mirror_blind_wedges"),  # the paper's modalities
     ],
 )
 def test_bad_feature_values_name_the_field(kwargs, name):
@@ -49,6 +51,14 @@ def test_dict_round_trip_and_differences():
         "grid.cells_xy: 8 != 10",
         "grid.z_edges: [-3.0, -1.0, 1.0, 6.0] != [-2.0, 0.0, 3.0]",
     ]
+
+
+def test_mirrored_wedges_are_saved_only_when_on_so_older_models_keep_their_identity():
+    plain = FeatureConfig(modalities=("height", "spectrum"), normalise=True)
+    mirrored = FeatureConfig(modalities=("height", "spectrum"), normalise=True, mirror_blind_wedges=True)
+    assert "mirror_blind_wedges" not in plain.to_dict()
+    assert mirrored.to_dict()["mirror_blind_wedges"] is True
+    assert FeatureConfig(**mirrored.to_dict()) == mirrored
 
 
 def test_unknown_keys_are_refused():

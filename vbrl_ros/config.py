@@ -176,6 +176,9 @@ class FeatureConfig:
     ``normalise`` scales each modality's block of a descriptor to unit L1 norm, so
     Eq. 4 compares the shape of two scans' feature distributions, not how much of
     each scan was seen (a sparse or partly blind scan is not near every other sparse one).
+    ``mirror_blind_wedges`` also hides the mirror image of every wedge the sensor did not
+    see (:mod:`vbrl_ros.features.blind_wedges`), so reversed revisits of a partly blind
+    sensor compare the same directions; height-map modalities only.
 
     Each voxel's points are rasterised on its XY, XZ and YZ faces into
     ``raster_size`` x ``raster_size`` snapshots (point counts scaled to a
@@ -191,6 +194,7 @@ class FeatureConfig:
     min_points: int = 3
     modalities: tuple[str, ...] = PAPER_MODALITIES
     normalise: bool = False
+    mirror_blind_wedges: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "modalities", tuple(self.modalities))
@@ -205,6 +209,13 @@ class FeatureConfig:
             isinstance(self.normalise, bool),
             "features.normalise",
             f"must be true or false, got {self.normalise!r}",
+        )
+        _require(
+            isinstance(self.mirror_blind_wedges, bool)
+            and (not self.mirror_blind_wedges or set(self.modalities) <= set(HEIGHT_MAP_MODALITIES)),
+            "features.mirror_blind_wedges",
+            f"must be true or false, and true only with height-map modalities "
+            f"({', '.join(HEIGHT_MAP_MODALITIES)}), got {self.mirror_blind_wedges!r}",
         )
         _require(
             # a power of two: voxelization splits sub-cells with bit shifts,
@@ -241,6 +252,8 @@ class FeatureConfig:
             del out["modalities"]
         if not self.normalise:
             del out["normalise"]
+        if not self.mirror_blind_wedges:
+            del out["mirror_blind_wedges"]
         return out
 
     @property

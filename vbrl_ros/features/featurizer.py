@@ -33,6 +33,7 @@ import numpy as np
 
 from vbrl_ros.config import HEIGHT_MAP_MODALITIES, MODALITY_NAMES, PAPER_MODALITIES, VBRLConfig
 from vbrl_ros.features.bev_spectrum import SpectrumSampler
+from vbrl_ros.features.blind_wedges import hide_mirrored_wedges
 from vbrl_ros.features.height_map import (
     CELL_M,
     MARGIN_M,
@@ -244,7 +245,12 @@ class Featurizer:
         grid = self.config.grid
         reach = (grid.max_range if grid.kind == "polar" else grid.extent_xy) + MARGIN_M
         frame = frame or GroundFrame.identity()
-        return height_cells(points, frame.rotation, float(frame.height), reach, CELL_M, self.grid.z_edges)
+        xy, height, layer_of = height_cells(points, frame.rotation, float(frame.height), reach, CELL_M,
+                                            self.grid.z_edges)
+        if self.config.features.mirror_blind_wedges:
+            keep = hide_mirrored_wedges(xy)
+            xy, height, layer_of = xy[keep], height[keep], layer_of[keep]
+        return xy, height, layer_of
 
     def _heights(self, cells: tuple[np.ndarray, np.ndarray, np.ndarray],
                  dx: float = 0.0, dy: float = 0.0) -> np.ndarray:

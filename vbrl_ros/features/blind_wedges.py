@@ -1,0 +1,70 @@
+"""Directions a scan did not see, mirrored so a revisit from the other way hides the same.
+
+A robot's mast or body, or the person carrying a hand-held sensor, hides a wedge
+fixed to the sensor: behind it, say. Driven the other way, the hidden wedge points
+where the first pass looked, and each pass describes what the other could not see —
+a reversed revisit then looks like another place (simulated: Recall@1 falls from
+.98 to about .35 with a 90° wedge). Hiding each wedge's mirror image as well
+(azimuth + 180°) leaves both passes the same directions of the world whether the
+revisit comes back the same way or reversed, the two headings a road or a corridor
+allows.
+
+Only long runs of empty azimuth bins count as blind: a short gap is open space or
+a thin occluder that the other pass does not see either. A scan that sees less than
+``MIN_SEEN_FRACTION`` of the circle (a forward-looking sensor) is left alone: its
+mirror would hide what it saw.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+BIN_DEG = 5.0  # azimuth histogram resolution
+MIN_BLIND_DEG = 20.0  # shortest run of empty bins that is a hidden wedge, not a gap
+MIN_RANGE_M = 1.0  # returns from the robot's own body do not count as seeing
+MIN_SEEN_FRACTION = 0.6  # below this the sensor is forward-looking, not partly blind
+
+BINS = round(360.0 / BIN_DEG)
+
+
+def azimuth_bins(xy: np.ndarray) -> np.ndarray:
+    """(n,) int64: the azimuth bin of each (x, y)."""
+    azimuth = np.arctan2(xy[:, 1], xy[:, 0])
+    return (np.floor((azimuth + np.pi) * (BINS / (2.0 * np.pi))).astype(np.int64)) % BINS
+
+
+def blind_bins(xy: np.ndarray) -> np.ndarray:
+    """(BINS,) bool: the azimuth bins inside runs of at least ``MIN_BLIND_DEG`` with no point
+    beyond ``MIN_RANGE_M``; all False when the scan saw less than ``MIN_SEEN_FRACTION``."""
+    far = xy[np.einsum("ij,ij->i", xy, xy) >= MIN_RANGE_M ** 2]
+    empty = np.bincount(azimuth_bins(far), minlength=BINS) == 0
+    if empty.all() or 1.0 - empty.mean() < MIN_SEEN_FRACTION:
+        return np.zeros(BINS, dtype=bool)
+    blind = np.zeros(BINS, dtype=bool)
+    start = int(np.argmin(empty))  # a seen bin: runs never wrap past it
+    run: list[int] = []
+    for step in range(1, BINS + 1):
+        b = (start + step) % BINS
+        if empty[b]:
+            run.append(b)
+            continue
+        if len(run) * BIN_DEG >= MIN_BLIND_DEG:
+            blind[run] = True
+        run = []
+    return blind
+
+
+def mirrored_blind_bins(xy: np.ndarray) -> np.ndarray:
+    """(BINS,) bool: the mirror image (azimuth + 180°) of every blind wedge.
+
+    Not widened: on simulated reversed revisits a bin more each side lost more than the
+    few degrees of heading it forgives (Recall@1 .68 unwidened, .67 and .60 a bin and two wider)."""
+    return np.roll(blind_bins(xy), BINS // 2)
+
+
+def hide_mirrored_wedges(xy: np.ndarray) -> np.ndarray:
+    """(n,) bool: which of the points (or height-map cells) at ``xy`` to keep."""
+    hidden = mirrored_blind_bins(xy)
+    if not hidden.any():
+        return np.ones(len(xy), dtype=bool)
+    return ~hidden[azimuth_bins(xy)]
