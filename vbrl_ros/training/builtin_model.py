@@ -69,16 +69,19 @@ class SimulatedTown:
     beams: int
     lane_offset_m: float = 1.0
     tilt_deg: tuple[float, float] = (0.0, 0.0)  # roll, pitch
+    blocked_azimuth_deg: tuple[float, float] | None = None  # a wedge hidden by the robot's mast
     scenario: str = "summer_clear"
     run_seed: int = 1
 
 
 #: Towns of every mount class the node is built for: a car (1.8 m, 64 beams), a low ground
-#: robot (0.6 m, 32 beams, wider lanes), a mast (2.4 m) and a tilted hand-held sensor; their
-#: routes drive every street both ways, so reversed revisits on the other lane are in it.
+#: robot (0.6 m, 32 beams, wider lanes, 60° behind it hidden by its mast), a mast (2.4 m) and
+#: a tilted hand-held sensor; their routes drive every street both ways, so reversed
+#: revisits on the other lane are in it.
 BUILTIN_TOWNS = (
     SimulatedTown(0, 1.8, 64, scenario="summer_clear", run_seed=101),
-    SimulatedTown(5, 0.6, 32, lane_offset_m=1.5, scenario="winter_snow", run_seed=102),
+    SimulatedTown(5, 0.6, 32, lane_offset_m=1.5, blocked_azimuth_deg=(150.0, -150.0), scenario="winter_snow",
+                  run_seed=102),
     SimulatedTown(6, 2.4, 64, scenario="autumn_fog", run_seed=103),
     SimulatedTown(7, 1.2, 32, tilt_deg=(5.0, 15.0), scenario="summer_clear", run_seed=104),
 )
@@ -97,7 +100,8 @@ def simulated_recognition_data(towns: tuple[SimulatedTown, ...], config: VBRLCon
             lane_offset_m=town_spec.lane_offset_m, sensor_roll_deg=town_spec.tilt_deg[0],
             sensor_pitch_deg=town_spec.tilt_deg[1]))
         wide = (-45.0, 45.0) if any(town_spec.tilt_deg) else None  # a tilted hand-held sensor
-        lidar = LidarConfig(beams=town_spec.beams, columns=1024, vertical_fov_deg=wide)
+        lidar = LidarConfig(beams=town_spec.beams, columns=1024, vertical_fov_deg=wide,
+                            blocked_azimuth_deg=town_spec.blocked_azimuth_deg)
         run = simulate_run(town, route, lidar, town_spec.scenario, seed=town_spec.run_seed)
         name = f"town{town_spec.town_seed}_{town_spec.sensor_height_m:g}m_{town_spec.beams}beams"
         descriptors = featurize((scan.points for scan in run), config, total=len(run),
