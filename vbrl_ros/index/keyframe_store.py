@@ -195,19 +195,20 @@ class KeyframeStore:
     def restore(self, stored: StoredArrays) -> None:
         """Replace the contents by saved arrays (checked by :func:`~vbrl_ros.index.state.read_arrays`).
 
-        Keys of an older construction are recomputed; a sample of the rest must
-        equal keys recomputed from the descriptors (``ValueError`` otherwise).
+        Keys of an older construction are recomputed from the descriptors; a sample
+        of saved ones must equal keys recomputed from them (``ValueError`` otherwise).
         """
         descriptors, keys, yaw, refine = (stored.descriptors, stored.keys, stored.yaw_keys,
                                           stored.refine_keys)
         n = len(descriptors)
-        if keys is None or refine is None:  # candidate keys of the 8-bit construction
+        if keys is None or refine is None or yaw is None:  # an older key construction
             keys = np.empty((n, self.parameters.key_dim), np.int8)
             refine = np.empty((n, self.parameters.refine_dim), np.int8)
+            yaw = np.empty((n, self.sectors, self.parameters.yaw_dim), np.float32)
             for start in range(0, n, _REKEY_ROWS):
                 chunk = descriptors[start : start + _REKEY_ROWS].astype(np.float32)
-                keys[start : start + len(chunk)], _, refine[start : start + len(chunk)] = (
-                    self.keys_as_stored(chunk))
+                rows = slice(start, start + len(chunk))
+                keys[rows], yaw[rows], refine[rows] = self.keys_as_stored(chunk)
         sample = np.unique(np.linspace(0, n - 1, min(n, _KEY_CHECK_ROWS)).astype(np.int64))
         expected = self.keys_as_stored(descriptors[sample].astype(np.float32))
         if n and not all(np.array_equal(computed, saved[sample])
