@@ -345,6 +345,8 @@ def test_version_3_files_load_with_keys_of_todays_construction():
     fresh.add_batch(x)
     assert loaded.parameters == fresh.parameters and loaded.parameters.key_dim == 256
     np.testing.assert_array_equal(loaded.store.stored_keys(), fresh.store.stored_keys())
+    # the yaw key does not depend on the candidate key: saved ones stay valid
+    np.testing.assert_array_equal(old.store.stored_yaw_keys(), fresh.store.stored_yaw_keys())
     np.testing.assert_array_equal(loaded.store.stored_yaw_keys(), fresh.store.stored_yaw_keys())
     for q in x[:10] + 0.1:
         assert np.array_equal(loaded.search(q, 3)[0], fresh.search(q, 3)[0])

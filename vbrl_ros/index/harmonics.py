@@ -10,9 +10,9 @@ for every k. So any weighted sum ``sum_r w_r sum_m c_m |g_m(a_r) - g_m(b_r)|``
 with ``sum_m c_m = 1`` is a lower bound of the Eq. 4 distance at every shift
 (:mod:`vbrl_ros.index.keys` groups these features into its keys).
 
-The column sum alone is what 40 columns (a narrow descriptor) cannot rank a
-map of 10^5 keyframes with; the first few harmonics say how each ring's content
-is spread around the sensor, which tells places apart far better.
+The 40 column sums of a narrow descriptor cannot rank a map of 10^5
+keyframes; the first few harmonics say how each ring's content is spread
+around the sensor, which tells places apart far better.
 
 Feature ``f = m * R + r`` is harmonic m of column r: a key of more entries than
 columns takes every column's first harmonics, lowest first (:func:`harmonics_for`).

@@ -201,14 +201,13 @@ class KeyframeStore:
         descriptors, keys, yaw, refine = (stored.descriptors, stored.keys, stored.yaw_keys,
                                           stored.refine_keys)
         n = len(descriptors)
-        if keys is None or refine is None or yaw is None:  # an older key construction
+        if keys is None or refine is None:  # candidate keys of an older construction
             keys = np.empty((n, self.parameters.key_dim), np.int8)
             refine = np.empty((n, self.parameters.refine_dim), np.int8)
-            yaw = np.empty((n, self.sectors, self.parameters.yaw_dim), np.float32)
             for start in range(0, n, _REKEY_ROWS):
                 chunk = descriptors[start : start + _REKEY_ROWS].astype(np.float32)
-                rows = slice(start, start + len(chunk))
-                keys[rows], yaw[rows], refine[rows] = self.keys_as_stored(chunk)
+                keys[start : start + len(chunk)], _, refine[start : start + len(chunk)] = (
+                    self.keys_as_stored(chunk))
         sample = np.unique(np.linspace(0, n - 1, min(n, _KEY_CHECK_ROWS)).astype(np.int64))
         expected = self.keys_as_stored(descriptors[sample].astype(np.float32))
         if n and not all(np.array_equal(computed, saved[sample])

@@ -128,8 +128,14 @@ class KeyCodec:
         # the refine key: the same construction with more entries (own seed stream)
         self.refine = KeyLayout(w64, sectors, refine_dim, np.random.default_rng([seed, 0x2EF1]),
                                 key_clip_sigma)
+        self.key = KeyLayout(w64, sectors, key_dim, np.random.default_rng([seed, 0x1DE7]),
+                             key_clip_sigma)
+        # The yaw key's groups are drawn where they always were: in the candidate key's
+        # stream after a column-sum key's column order and signs, so they do not change
+        # with the candidate key (a narrow model's saved yaw keys stay valid, and the
+        # search's later stages, sensitive to this draw, stay as measured).
         rng = np.random.default_rng([seed, 0x1DE7])
-        self.key = KeyLayout(w64, sectors, key_dim, rng, key_clip_sigma)
+        rng.permutation(width), rng.integers(0, 2, width)
         self.yaw_group = rng.permutation(np.arange(width) % max(yaw_dim, 1)).astype(np.int64)
         self.yaw_signed = ((rng.integers(0, 2, width) * 2 - 1) * w64).astype(np.float32)
         self.cosines, self.sines = hm.dft_tables(sectors, max(self.key.harmonics,

@@ -8,11 +8,12 @@ sample of the keys matches its descriptors, so a file written with other key
 parameters (or another key construction) is refused instead of silently
 searching with wrong keys.
 
-Older files come back without keys, which the index computes from the stored
-descriptors: version 2 (8-bit keys) and version 3 (keys of column sums only, at
-most one entry per column). Their key sizes, if they were the defaults of
-their day, become today's, so a database of a narrow descriptor saved before
-the keys had harmonics gains them on loading; sizes chosen by hand are kept.
+Older files come back without candidate and refine keys, which the index
+computes from the stored descriptors (their yaw keys are today's): version 2
+(8-bit keys) and version 3 (keys of column sums only, at most one entry per
+column). Their key sizes, if they were the defaults of their day, become
+today's, so a database of a narrow descriptor saved before the keys had
+harmonics gains them on loading; sizes chosen by hand are kept.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ class StoredArrays:
 
     descriptors: np.ndarray  # (n, d) in the storage dtype
     keys: np.ndarray | None  # (n, key_dim) int8; None: to be recomputed (older construction)
-    yaw_keys: np.ndarray | None  # (n, S, yaw_dim) float32; None as for keys
+    yaw_keys: np.ndarray  # (n, S, yaw_dim) float32
     refine_keys: np.ndarray | None  # (n, refine_dim) int8; None as for keys
 
 
@@ -104,7 +105,7 @@ def read_arrays(arrays: Mapping[str, np.ndarray], prefix: str, parameters: Index
                 dimension: int) -> StoredArrays:
     """The saved descriptors and keys, checked against the (resolved) ``parameters``.
 
-    Keys of an older construction come back as ``None`` (all three).
+    Candidate and refine keys of an older construction come back as ``None``.
     """
     get = _getter(arrays, prefix)
     p = parameters
@@ -115,18 +116,19 @@ def read_arrays(arrays: Mapping[str, np.ndarray], prefix: str, parameters: Index
                          f"expected ({n}, {dimension}) {p.storage}")
     if not np.all(np.isfinite(descriptors)):
         raise ValueError("descriptors contain NaN or inf")
-    keys = refine = yaw = None
+    keys = refine = None
+    yaw = get("yaw_keys")
     if _version(get) not in _REKEYED_VERSIONS:
-        keys, refine, yaw = get("keys"), get("refine_keys"), get("yaw_keys")
+        keys, refine = get("keys"), get("refine_keys")
         if refine.shape != (n, p.refine_dim) or refine.dtype != np.int8:
             raise ValueError(f"refine keys have shape {refine.shape} {refine.dtype}, "
                              f"expected ({n}, {p.refine_dim}) int8")
         if keys.shape != (n, p.key_dim) or keys.dtype != np.int8:
             raise ValueError(f"keys have shape {keys.shape} {keys.dtype}, "
                              f"expected ({n}, {p.key_dim}) int8")
-        if yaw.shape != (n, p.sectors, p.yaw_dim) or yaw.dtype != np.float32:
-            raise ValueError(f"yaw keys have shape {yaw.shape} {yaw.dtype}, "
-                             f"expected ({n}, {p.sectors}, {p.yaw_dim}) float32")
+    if yaw.shape != (n, p.sectors, p.yaw_dim) or yaw.dtype != np.float32:
+        raise ValueError(f"yaw keys have shape {yaw.shape} {yaw.dtype}, "
+                         f"expected ({n}, {p.sectors}, {p.yaw_dim}) float32")
     return StoredArrays(descriptors, keys, yaw, refine)
 
 
