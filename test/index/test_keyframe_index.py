@@ -176,7 +176,7 @@ def test_shift_completion_recovers_best_shifts_the_yaw_key_misses():
     queries = [_roll(x[i] + 0.6 * rng.standard_normal(x.shape[1]).astype(np.float32), 12,
                      int(rng.integers(0, 12))) for i in rng.integers(0, 300, 40)]
     # every row reaches stage 3, but a 1-group yaw key tries one poorly chosen shift
-    options = dict(sectors=12, candidates=300, rerank=300, yaw_dim=1, yaw_shifts=1)
+    options = {"sectors": 12, "candidates": 300, "rerank": 300, "yaw_dim": 1, "yaw_shifts": 1}
     without = KeyframeIndex(weights, IndexParameters(complete_rows=0, **options))
     completed = KeyframeIndex(weights, IndexParameters(complete_rows=300, **options))  # all: must be exact
     without.add_batch(x), completed.add_batch(x)
@@ -191,7 +191,7 @@ def test_shift_completion_recovers_best_shifts_the_yaw_key_misses():
 
 
 def test_synthetic_clustered_top1_matches_exact():
-    x, centres = _clustered(4000, 1024, 200, 2)
+    x, _ = _clustered(4000, 1024, 200, 2)
     index = KeyframeIndex(_weights(1024), IndexParameters(key_dim=128, candidates=64))
     index.add_batch(x)
     rng = np.random.default_rng(3)
@@ -350,6 +350,7 @@ def test_version_3_files_load_with_keys_of_todays_construction():
     np.testing.assert_array_equal(loaded.store.stored_yaw_keys(), fresh.store.stored_yaw_keys())
     for q in x[:10] + 0.1:
         assert np.array_equal(loaded.search(q, 3)[0], fresh.search(q, 3)[0])
+    assert int(loaded.state()["index_format_version"]) == INDEX_FORMAT_VERSION == 4  # saved re-keyed
     hand_set = KeyframeIndex(weights, IndexParameters(sectors=12, key_dim=16, refine_dim=30))
     hand_set.add_batch(x)
     kept = KeyframeIndex.from_state({**hand_set.state(), "index_format_version": np.array(3)})

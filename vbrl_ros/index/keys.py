@@ -341,7 +341,7 @@ def yaw_bounds(yaw_keys: np.ndarray, rows: np.ndarray, query: np.ndarray, shifts
     (~1.3 us per keyframe and all 24 shifts at G = 16). ``shifts``: (len(rows), m)
     in [0, S), e.g. a broadcast ``arange(S)`` for every shift.
     """
-    sectors, dim = query.shape
+    dim = query.shape[1]
     flat = query.ravel()
     doubled = np.empty(2 * len(flat), np.float32)
     doubled[: len(flat)] = flat
