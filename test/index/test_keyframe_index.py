@@ -94,19 +94,22 @@ def test_polar_distances_match_the_scorer_and_are_the_same_in_both_searches():
     np.testing.assert_array_equal(scan_k[exact.indices], exact.shifts)
 
 
-def test_keys_bound_the_distance_from_below_at_every_shift():
+@pytest.mark.parametrize("key_dim", [16, 100])  # column sums; sums and 3 harmonics of 30 columns
+def test_keys_bound_the_distance_from_below_at_every_shift(key_dim):
     sectors = 8
     x, weights, column_weights = _polar(60, sectors=sectors, columns=30, seed=2)
-    index = KeyframeIndex(weights, IndexParameters(sectors=sectors, key_dim=16, yaw_dim=5))
-    keys, yaw_keys = index.store.raw_keys(x)
+    x[1::2] = [_roll(x[i - 1], sectors, i % sectors) + 0.05 * x[i] for i in range(1, 60, 2)]  # near turns
+    index = KeyframeIndex(weights, IndexParameters(sectors=sectors, key_dim=key_dim, refine_dim=120,
+                                                   yaw_dim=5))
+    keys, yaw_keys, refine = index.store.codec.raw(x)
     cells = x.reshape(len(x), sectors, -1).astype(np.float64)
     for a in range(0, 60, 7):
-        for b in range(1, 60, 5):
+        for b in [*range(1, 60, 5), a + 1]:
             per_shift = np.array([
                 sum(column_weights @ np.abs(cells[a, (s + k) % sectors] - cells[b, s])
                     for s in range(sectors)) for k in range(sectors)])
-            key_bound = np.abs(keys[a] - keys[b]).sum()
-            assert key_bound <= per_shift.min() * (1 + 1e-5) + 1e-6  # rotation-invariant
+            for key in (keys, refine):  # rotation-invariant
+                assert np.abs(key[a] - key[b]).sum() <= per_shift.min() * (1 + 1e-5) + 1e-5
             for k in range(sectors):
                 yaw_bound = np.abs(np.roll(yaw_keys[a], -k, axis=0) - yaw_keys[b]).sum()
                 assert yaw_bound <= per_shift[k] * (1 + 1e-5) + 1e-6
@@ -127,7 +130,7 @@ def test_float16_storage_widens_exactly():
         np.testing.assert_array_equal(a.indices, b.indices)
         np.testing.assert_array_equal(a.distances, b.distances)
     p = half.parameters
-    assert half.bytes_per_keyframe() == 480 * 2 + -(-p.key_dim // 2) + 4 * 12 * p.yaw_dim
+    assert half.bytes_per_keyframe() == 480 * 2 + (p.key_dim + p.refine_dim) // 2 + 4 * 12 * p.yaw_dim
 
 
 # -- rotation search ---------------------------------------------------------------------
@@ -173,7 +176,7 @@ def test_shift_completion_recovers_best_shifts_the_yaw_key_misses():
     queries = [_roll(x[i] + 0.6 * rng.standard_normal(x.shape[1]).astype(np.float32), 12,
                      int(rng.integers(0, 12))) for i in rng.integers(0, 300, 40)]
     # every row reaches stage 3, but a 1-group yaw key tries one poorly chosen shift
-    options = dict(sectors=12, candidates=300, rerank=300, yaw_dim=1, yaw_shifts=1)
+    options = {"sectors": 12, "candidates": 300, "rerank": 300, "yaw_dim": 1, "yaw_shifts": 1}
     without = KeyframeIndex(weights, IndexParameters(complete_rows=0, **options))
     completed = KeyframeIndex(weights, IndexParameters(complete_rows=300, **options))  # all: must be exact
     without.add_batch(x), completed.add_batch(x)
@@ -188,7 +191,7 @@ def test_shift_completion_recovers_best_shifts_the_yaw_key_misses():
 
 
 def test_synthetic_clustered_top1_matches_exact():
-    x, centres = _clustered(4000, 1024, 200, 2)
+    x, _ = _clustered(4000, 1024, 200, 2)
     index = KeyframeIndex(_weights(1024), IndexParameters(key_dim=128, candidates=64))
     index.add_batch(x)
     rng = np.random.default_rng(3)
@@ -309,8 +312,8 @@ def test_state_round_trip(tmp_path, storage):
     legacy = KeyframeIndex.from_state(first)
     defaults = KeyframeIndex(weights, IndexParameters(sectors=12)).parameters
     assert legacy.parameters.complete_rows == defaults.complete_rows == 8
-    # all 40 columns, 4x the candidates
-    assert (legacy.parameters.refine_dim, legacy.parameters.scan_pool) == (40, 4)
+    # every invariant feature of the 40 columns (sums and 6 harmonics), 4x the candidates
+    assert (legacy.parameters.refine_dim, legacy.parameters.scan_pool) == (40 * 7, 4)
     assert legacy.parameters.bound_shifts == 12  # every shift
     with pytest.raises(ValueError, match="lacks"):
         KeyframeIndex.from_state({"index_format": np.array("vbrl_ros.keyframe_index")})
@@ -328,6 +331,31 @@ def test_state_round_trip(tmp_path, storage):
         KeyframeIndex.from_state({**state, "index_yaw_keys": bad})
     with pytest.raises(ValueError, match="yaw keys have shape"):
         KeyframeIndex.from_state({**state, "index_yaw_keys": bad[:, :, :3]})
+
+
+def test_version_3_files_load_with_keys_of_todays_construction():
+    # version 3 keyed a narrow descriptor by its column sums alone; its files keep
+    # their descriptors and hand-set sizes, default sizes become today's
+    x, weights, _ = _polar(300, seed=12)
+    old = KeyframeIndex(weights, IndexParameters(sectors=12, key_dim=40, refine_dim=0))
+    old.add_batch(x)
+    state = {**old.state(), "index_format_version": np.array(3)}
+    loaded = KeyframeIndex.from_state(state)
+    fresh = KeyframeIndex(weights, IndexParameters(sectors=12))
+    fresh.add_batch(x)
+    assert loaded.parameters == fresh.parameters and loaded.parameters.key_dim == 256
+    np.testing.assert_array_equal(loaded.store.stored_keys(), fresh.store.stored_keys())
+    # the yaw key does not depend on the candidate key: saved ones stay valid
+    np.testing.assert_array_equal(old.store.stored_yaw_keys(), fresh.store.stored_yaw_keys())
+    np.testing.assert_array_equal(loaded.store.stored_yaw_keys(), fresh.store.stored_yaw_keys())
+    for q in x[:10] + 0.1:
+        assert np.array_equal(loaded.search(q, 3)[0], fresh.search(q, 3)[0])
+    assert int(loaded.state()["index_format_version"]) == INDEX_FORMAT_VERSION == 4  # saved re-keyed
+    hand_set = KeyframeIndex(weights, IndexParameters(sectors=12, key_dim=16, refine_dim=30))
+    hand_set.add_batch(x)
+    kept = KeyframeIndex.from_state({**hand_set.state(), "index_format_version": np.array(3)})
+    assert kept.parameters == hand_set.parameters
+    np.testing.assert_array_equal(kept.store.stored_keys(), hand_set.store.stored_keys())
 
 
 def test_rejects_bad_input():

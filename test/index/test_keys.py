@@ -74,8 +74,9 @@ def test_raw_keys_group_the_sector_sums():
     signed = rng.standard_normal(width).astype(np.float32)
     keys = np.empty((20, 3), np.float32)
     out = np.empty((20, groups), np.float32)
-    kk.raw_keys(x, sectors, group % 3, signed, group, signed, np.zeros(width, np.int64), signed,
-                keys, out, np.empty((20, sectors, 0), np.float32))
+    none = np.empty((0, sectors))  # no harmonics: the features are the column sums
+    kk.raw_keys(x, sectors, none, none, group % 3, signed, group, signed, np.zeros(width, np.int64),
+                signed, keys, out, np.empty((20, sectors, 0), np.float32))
     columns = x.reshape(20, sectors, width).sum(axis=1) * signed
     expected = np.stack([columns[:, group == g].sum(axis=1) for g in range(groups)], axis=1)
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-5)

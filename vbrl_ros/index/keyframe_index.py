@@ -11,12 +11,14 @@ costs N * S * d per query (seconds at 100k polar keyframes). Next to every
 descriptor the index keeps small keys and searches in (up to) four stages:
 
 1. **Candidates** from a rotation-invariant key: each column summed over the
-   sectors, ``c_r = sum_s x[s, r]``, the columns split at random (seeded) into
-   ``key_dim`` groups, key_j = sum over the group of ``sign_r w_r c_r`` (random
-   signs). By the triangle inequality ``||key(a) - key(b)||_1 <= D_k(a, b)`` for
-   every shift k: a lower bound whatever the heading. 4 bits per entry with a
-   fixed scale from the weights (no training, O(d) inserts, never a rebuild),
-   scanned at memory speed keeping the ``scan_pool x candidates`` best
+   sectors, ``c_r = sum_s x[s, r]`` (and, for a descriptor of fewer than
+   ``key_dim`` columns, the magnitudes of the column's first DFT harmonics over
+   the sectors, :mod:`vbrl_ros.index.harmonics`), these features split at random
+   (seeded) into ``key_dim`` groups, key_j = sum over the group of
+   ``sign_f coefficient_f feature_f`` (random signs). By the triangle inequality
+   ``||key(a) - key(b)||_1 <= D_k(a, b)`` for every shift k: a lower bound
+   whatever the heading. 4 bits per entry with scales fixed by the weights
+   (no training, O(d) inserts, never a rebuild), scanned at memory speed keeping the ``scan_pool x candidates`` best
    (:mod:`vbrl_ros.index.keys`); a finer *refine key* (the same construction
    with ``refine_dim`` groups, kept row-major) re-scores those and keeps the
    ``candidates`` best. Twice the groups rank the true match much better but

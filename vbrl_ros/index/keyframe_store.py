@@ -195,13 +195,13 @@ class KeyframeStore:
     def restore(self, stored: StoredArrays) -> None:
         """Replace the contents by saved arrays (checked by :func:`~vbrl_ros.index.state.read_arrays`).
 
-        Keys of an older construction are recomputed; a sample of the rest must
-        equal keys recomputed from the descriptors (``ValueError`` otherwise).
+        Keys of an older construction are recomputed from the descriptors; a sample
+        of saved ones must equal keys recomputed from them (``ValueError`` otherwise).
         """
         descriptors, keys, yaw, refine = (stored.descriptors, stored.keys, stored.yaw_keys,
                                           stored.refine_keys)
         n = len(descriptors)
-        if keys is None or refine is None:  # candidate keys of the 8-bit construction
+        if keys is None or refine is None:  # candidate keys of an older construction
             keys = np.empty((n, self.parameters.key_dim), np.int8)
             refine = np.empty((n, self.parameters.refine_dim), np.int8)
             for start in range(0, n, _REKEY_ROWS):

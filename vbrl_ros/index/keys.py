@@ -4,9 +4,11 @@ Both keys are signed group sums of weighted descriptor entries, so by the
 triangle inequality their L1 distances are lower bounds of the Eq. 4 distance
 (see :mod:`vbrl_ros.index.keyframe_index`):
 
-- the *candidate key* (``key_dim`` entries) sums every column over the sectors
-  first, so it does not change when a scan is rotated by whole sectors; a
-  finer *refine key* (``refine_dim`` entries, the same construction, stored
+- the *candidate key* (``key_dim`` entries) is made of features of each column
+  that do not change when a scan is rotated by whole sectors: its sum over the
+  sectors and, when the columns alone cannot fill the key (a narrow descriptor),
+  the magnitudes of its first harmonics over the sectors (:mod:`.harmonics`);
+  a finer *refine key* (``refine_dim`` entries, the same construction, stored
   row-major) re-scores the scan's best candidates;
 - the *yaw key* (``S x G`` entries) keeps the sectors apart, so comparing it
   under every circular shift ranks the candidates and their shifts cheaply.
@@ -31,11 +33,13 @@ import heapq
 import numpy as np
 from numba import njit
 
+from vbrl_ros.index import harmonics as hm
 from vbrl_ros.model.distance_kernels import as_float32
 
 BLOCK = 128  # keyframes per key block
 MAX_KEY_DIM = 1024  # uint16 sums of nibble differences stay exact up to 4369 entries
 KEY_LEVELS = 7  # a key entry is an integer in [-7, 7], stored as a nibble (value + 8)
+HARMONIC_CLIP_RATIO = 2 / 3  # entries with harmonics clip at this share of key_clip_sigma
 _PAIRS_PER_PARTIAL = 8  # 8 pairs of nibble differences: <= 240, fits a uint8 partial sum
 
 
@@ -56,8 +60,59 @@ def energy_balanced_groups(energy: np.ndarray, groups: int,
     return group
 
 
+class KeyLayout:
+    """How one key's entries are made from the invariant column features (:mod:`.harmonics`).
+
+    Features (the column sums, then the first ``harmonics`` magnitudes of every
+    column) are split into ``entries`` groups of equal weight energy, each a
+    signed, weighted sum: ``group``/``signed`` per feature. ``offset`` is each
+    entry's nominal mean (0 without harmonics; magnitudes are never negative), taken
+    off before the 4-bit rounding so the codes centre on the nibble range;
+    ``inverse_scale`` maps ``key_clip_sigma`` nominal standard deviations to 7.
+    """
+
+    def __init__(self, column_weights: np.ndarray, sectors: int, entries: int,
+                 rng: np.random.Generator, clip_sigma: float) -> None:
+        width = len(column_weights)
+        w64 = np.asarray(column_weights, np.float64)
+        self.harmonics = hm.harmonics_for(entries, width, sectors)
+        coefficients, means = hm.feature_coefficients(w64, sectors, self.harmonics)
+        # equal weight energy per entry (heaviest features alone), random signs. A random
+        # partition would let one heavy column set the scale of every entry: with a model
+        # whose weight sits on a few rows most entries would round to 0. Every harmonic of
+        # a column has the same nominal spread, so the energy is the column's weight squared.
+        groups = max(entries, 1)
+        self.group = energy_balanced_groups(np.tile(w64**2, self.harmonics + 1), groups, rng)
+        sign = rng.integers(0, 2, len(coefficients)) * 2 - 1
+        self.signed = (sign * coefficients).astype(np.float32)
+        self.offset = np.bincount(self.group, weights=sign * means,
+                                  minlength=groups)[:entries].astype(np.float32)
+        # an entry sums unit-variance terms, nominal spread sqrt(S) w_r / sum(beta) each
+        spread = hm.nominal_statistics(sectors, self.harmonics)[1]
+        beta_sum = float((spread[0] / spread).sum())
+        sigma = np.sqrt(sectors * np.bincount(self.group, weights=np.tile(w64**2, self.harmonics + 1),
+                                              minlength=groups)) / beta_sum
+        if self.harmonics:
+            # Entries of few columns cannot be balanced (40 columns, 256 entries: most stand
+            # alone, their weights 4x apart), so each gets its own scale: light columns keep
+            # all 15 levels. Real magnitudes spread less than independent sectors would make
+            # them, so they clip sooner (the ratio ranked the brute-force match best among
+            # 1.5, 2, 2.5, 3 and 4 sigma at 100k keyframes).
+            clip = HARMONIC_CLIP_RATIO * clip_sigma * sigma[: max(entries, 1)]
+            self.inverse_scale = (KEY_LEVELS / np.where(clip > 0, clip, KEY_LEVELS)).astype(np.float32)
+        else:  # equal energies by construction: one scale, as the key always had
+            scale = clip_sigma * float(sigma.max()) / KEY_LEVELS
+            self.inverse_scale = np.float32(1.0 / scale) if scale > 0 else np.float32(1.0)
+
+    def codes(self, raw: np.ndarray) -> np.ndarray:
+        """Entries as nibble codes (uint8, value + 8 in [1, 15]), shape of ``raw``."""
+        value = np.clip(np.rint((raw - self.offset) * self.inverse_scale), -KEY_LEVELS, KEY_LEVELS)
+        return (value + 8).astype(np.uint8)
+
+
 class KeyCodec:
-    """Seeded random column partitions and signs of both keys, and the candidate key's 4-bit scale.
+    """Seeded layouts of the three keys (:class:`KeyLayout` for the candidate and refine
+    keys, random column groups and signs for the yaw key) and the kernels' tables.
 
     ``key_clip_sigma``: the [-7, 7] range in standard deviations of a key
     entry, assuming unit-variance (standardised) features independent across
@@ -69,29 +124,22 @@ class KeyCodec:
         width = len(column_weights)
         self.sectors, self.key_dim, self.yaw_dim = sectors, key_dim, yaw_dim
         self.refine_dim = refine_dim
-        rng = np.random.default_rng([seed, 0x1DE7])
         w64 = np.asarray(column_weights, np.float64)
-        # the refine key: the same construction with finer groups (own seed stream)
-        fine = np.random.default_rng([seed, 0x2EF1])
-        self.refine_group = energy_balanced_groups(w64**2, max(refine_dim, 1), fine)
-        self.refine_signed = ((fine.integers(0, 2, width) * 2 - 1) * w64).astype(np.float32)
-        self.refine_inverse_scale = self._inverse_scale(w64, self.refine_group, max(refine_dim, 1),
-                                                        key_clip_sigma)
-        # Candidate-key groups of equal weight energy (heaviest columns alone), random
-        # signs. A random partition would let one heavy column set the scale of every
-        # group: with a model whose weight sits on a few rows most keys would round to 0.
-        self.group = energy_balanced_groups(w64**2, key_dim, rng)
-        self.signed = ((rng.integers(0, 2, width) * 2 - 1) * w64).astype(np.float32)
+        # the refine key: the same construction with more entries (own seed stream)
+        self.refine = KeyLayout(w64, sectors, refine_dim, np.random.default_rng([seed, 0x2EF1]),
+                                key_clip_sigma)
+        self.key = KeyLayout(w64, sectors, key_dim, np.random.default_rng([seed, 0x1DE7]),
+                             key_clip_sigma)
+        # The yaw key's groups are drawn where they always were: in the candidate key's
+        # stream after a column-sum key's column order and signs, so they do not change
+        # with the candidate key (a narrow model's saved yaw keys stay valid, and the
+        # search's later stages, sensitive to this draw, stay as measured).
+        rng = np.random.default_rng([seed, 0x1DE7])
+        rng.permutation(width), rng.integers(0, 2, width)
         self.yaw_group = rng.permutation(np.arange(width) % max(yaw_dim, 1)).astype(np.int64)
         self.yaw_signed = ((rng.integers(0, 2, width) * 2 - 1) * w64).astype(np.float32)
-        self.inverse_scale = self._inverse_scale(w64, self.group, key_dim, key_clip_sigma)
-
-    def _inverse_scale(self, w64: np.ndarray, group: np.ndarray, groups: int,
-                       clip_sigma: float) -> np.float32:
-        # a key entry sums S * |group| unit-variance terms
-        sigma = np.sqrt(self.sectors * np.bincount(group, weights=w64**2, minlength=groups))
-        scale = clip_sigma * float(sigma.max()) / KEY_LEVELS
-        return np.float32(1.0 / scale) if scale > 0 else np.float32(1.0)
+        self.cosines, self.sines = hm.dft_tables(sectors, max(self.key.harmonics,
+                                                              self.refine.harmonics))
 
     def raw(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Unquantised (candidate keys (n, key_dim), yaw keys (n, S, yaw_dim), refine keys
@@ -100,22 +148,18 @@ class KeyCodec:
         keys = np.empty((len(x), self.key_dim), np.float32)
         yaw = np.empty((len(x), self.sectors, self.yaw_dim), np.float32)
         refine = np.empty((len(x), self.refine_dim), np.float32)
-        raw_keys(x, self.sectors, self.group, self.signed, self.refine_group, self.refine_signed,
-                 self.yaw_group, self.yaw_signed, keys, refine, yaw)
+        raw_keys(x, self.sectors, self.cosines, self.sines, self.key.group, self.key.signed,
+                 self.refine.group, self.refine.signed, self.yaw_group, self.yaw_signed, keys,
+                 refine, yaw)
         return keys, yaw, refine
 
     def quantised(self, raw: np.ndarray) -> np.ndarray:
         """Candidate-key entries as nibble codes (uint8, value + 8 in [1, 15]), shape of ``raw``."""
-        return _nibble_codes(raw, self.inverse_scale)
+        return self.key.codes(raw)
 
     def refine_quantised(self, raw: np.ndarray) -> np.ndarray:
         """Refine-key entries as nibble codes, on the refine key's own scale."""
-        return _nibble_codes(raw, self.refine_inverse_scale)
-
-
-def _nibble_codes(raw: np.ndarray, inverse_scale: np.float32) -> np.ndarray:
-    value = np.clip(np.rint(raw * inverse_scale), -KEY_LEVELS, KEY_LEVELS)
-    return (value + 8).astype(np.uint8)
+        return self.refine.codes(raw)
 
 
 def packed(codes: np.ndarray) -> np.ndarray:
@@ -145,40 +189,42 @@ def unpacked(pairs: np.ndarray, key_dim: int) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def raw_keys(x: np.ndarray, sectors: int, group: np.ndarray, signed_w: np.ndarray,
-             refine_group: np.ndarray, refine_signed_w: np.ndarray, yaw_group: np.ndarray,
-             yaw_signed_w: np.ndarray, out_key: np.ndarray, out_refine: np.ndarray,
-             out_yaw: np.ndarray) -> None:
+def raw_keys(x: np.ndarray, sectors: int, cosines: np.ndarray, sines: np.ndarray,
+             group: np.ndarray, signed_w: np.ndarray, refine_group: np.ndarray,
+             refine_signed_w: np.ndarray, yaw_group: np.ndarray, yaw_signed_w: np.ndarray,
+             out_key: np.ndarray, out_refine: np.ndarray, out_yaw: np.ndarray) -> None:
     """Unquantised keys of (m, S*R) descriptors: out_key (m, key_dim), out_refine
     (m, refine_dim; skipped when 0), out_yaw (m, S, G; skipped when G = 0).
 
-    ``x``: float32, or the uint16 view of float16 descriptors.
+    ``x``: float32, or the uint16 view of float16 descriptors. ``cosines``/``sines``:
+    :func:`~vbrl_ros.index.harmonics.dft_tables` for the most harmonics either key uses.
 
-    key[j] = sum_{r in group j} sign_r w_r sum_s x[s, r] (refine: its own groups, signs);
+    key[j] = sum_{f in group j} signed_f feature_f over the invariant column features
+    (:func:`~vbrl_ros.index.harmonics.column_features`; refine: its own groups, signs);
     yaw[s, g] = sum_{r in yaw group g} sign'_r w_r x[s, r].
     """
-    width = len(group)
+    width = len(yaw_group)
     yaw_dim = out_yaw.shape[2]
-    column = np.empty(width, np.float32)
+    features = np.empty(width * (cosines.shape[0] + 1), np.float32)
+    re = np.empty((cosines.shape[0], width), np.float64)
+    im = np.empty((cosines.shape[0], width), np.float64)
     for i in range(x.shape[0]):
         row = x[i]
-        column[:] = 0.0
-        out_yaw[i, :, :] = 0.0
-        for s in range(sectors):  # contiguous, vectorised column sums
-            part = row[s * width : (s + 1) * width]
-            for r in range(width):
-                column[r] += as_float32(part[r])
-            if yaw_dim > 0:
+        hm.column_features(row, sectors, width, cosines, sines, re, im, features)
+        if yaw_dim > 0:
+            out_yaw[i, :, :] = 0.0
+            for s in range(sectors):
+                part = row[s * width : (s + 1) * width]
                 yaw = out_yaw[i, s]
                 for r in range(width):
                     yaw[yaw_group[r]] += yaw_signed_w[r] * as_float32(part[r])
         out_key[i, :] = 0.0
-        for r in range(width):
-            out_key[i, group[r]] += signed_w[r] * column[r]
+        for f in range(len(group)):
+            out_key[i, group[f]] += signed_w[f] * features[f]
         if out_refine.shape[1] > 0:
             out_refine[i, :] = 0.0
-            for r in range(width):
-                out_refine[i, refine_group[r]] += refine_signed_w[r] * column[r]
+            for f in range(len(refine_group)):
+                out_refine[i, refine_group[f]] += refine_signed_w[f] * features[f]
 
 
 @njit(cache=True, nogil=True)
@@ -295,7 +341,7 @@ def yaw_bounds(yaw_keys: np.ndarray, rows: np.ndarray, query: np.ndarray, shifts
     (~1.3 us per keyframe and all 24 shifts at G = 16). ``shifts``: (len(rows), m)
     in [0, S), e.g. a broadcast ``arange(S)`` for every shift.
     """
-    sectors, dim = query.shape
+    dim = query.shape[1]
     flat = query.ravel()
     doubled = np.empty(2 * len(flat), np.float32)
     doubled[: len(flat)] = flat

@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
+from vbrl_ros.index.harmonics import feature_count
 from vbrl_ros.index.keys import MAX_KEY_DIM
 
 _MAX_INT = 2**31 - 1
@@ -69,15 +70,16 @@ class IndexParameters:
         chosen = {name: default if given[name] is None else given[name]
                   for name, default in default_parameters(width, sectors).items()}
         polar = sectors > 1
-        limits = {"key_dim": (1, min(width, MAX_KEY_DIM)), "candidates": (1, _MAX_INT),
+        features = min(feature_count(width, sectors), MAX_KEY_DIM)  # column sums and harmonics
+        limits = {"key_dim": (1, features), "candidates": (1, _MAX_INT),
                   "rerank": (1, _MAX_INT), "yaw_dim": (1, width) if polar else (0, 0),
                   "yaw_shifts": (1, sectors), "bound_shifts": (1, sectors),
                   "complete_rows": (0, _MAX_INT),
-                  "refine_dim": (0, min(width, MAX_KEY_DIM)), "scan_pool": (1, 64)}
+                  "refine_dim": (0, features), "scan_pool": (1, 64)}
         checked = {}
         for name in limits:  # key_dim and yaw_shifts before what depends on them
             if name == "refine_dim" and given[name] is None:
-                chosen[name] = _default_refine_dim(width, checked["key_dim"])
+                chosen[name] = _default_refine_dim(width, sectors, checked["key_dim"])
             if name == "bound_shifts":  # the shifts tried exactly are among these
                 limits[name] = (checked["yaw_shifts"], sectors)
             checked[name] = checked_int(name, chosen[name], *limits[name])
@@ -96,7 +98,7 @@ def default_parameters(width: int, sectors: int) -> dict[str, int]:
     cross-season queries needs most.
     """
     polar = sectors > 1
-    key_dim = min(DEFAULT_KEY_DIM, width)
+    key_dim = min(DEFAULT_KEY_DIM, feature_count(width, sectors))
     return {
         "key_dim": key_dim,
         "candidates": 1024 if polar else 512,
@@ -105,14 +107,14 @@ def default_parameters(width: int, sectors: int) -> dict[str, int]:
         "yaw_shifts": min(sectors, 2),
         "bound_shifts": sectors,  # every shift: fewer lost real matches (KeyframeIndex._yaw_bounds)
         "complete_rows": 8 if polar else 0,
-        "refine_dim": _default_refine_dim(width, key_dim),
+        "refine_dim": _default_refine_dim(width, sectors, key_dim),
         "scan_pool": DEFAULT_SCAN_POOL,
     }
 
 
-def _default_refine_dim(width: int, key_dim: int) -> int:
+def _default_refine_dim(width: int, sectors: int, key_dim: int) -> int:
     """A refine key finer than the scan key actually used, or none."""
-    refine = min(DEFAULT_REFINE_DIM, width)
+    refine = min(DEFAULT_REFINE_DIM, feature_count(width, sectors))
     return refine if refine > key_dim else 0
 
 

@@ -6,9 +6,14 @@ candidate and refine keys (int8 values in [-7, 7]) and the float32 yaw keys.
 This module only writes and reads them; the index checks on restore that a
 sample of the keys matches its descriptors, so a file written with other key
 parameters (or another key construction) is refused instead of silently
-searching with wrong keys. Version 2 files (int8 keys of the 8-bit
-construction) come back without candidate and refine keys: the index
-computes them from the descriptors.
+searching with wrong keys.
+
+Older files come back without candidate and refine keys, which the index
+computes from the stored descriptors (their yaw keys are today's): version 2
+(8-bit keys) and version 3 (keys of column sums only, at most one entry per
+column). Their key sizes, if they were the defaults of their day, become
+today's, so a database of a narrow descriptor saved before the keys had
+harmonics gains them on loading; sizes chosen by hand are kept.
 """
 
 from __future__ import annotations
@@ -23,8 +28,10 @@ from vbrl_ros.index.parameters import SAVED_APART, IndexParameters
 from vbrl_ros.io.npz import INTEGER, NUMBER, TEXT, Member
 
 INDEX_FORMAT = "vbrl_ros.keyframe_index"
-INDEX_FORMAT_VERSION = 3
-_REKEYED_VERSIONS = (2,)  # readable: same descriptors and parameters, keys recomputed
+INDEX_FORMAT_VERSION = 4
+_REKEYED_VERSIONS = (2, 3)  # readable: same descriptors and parameters, keys recomputed
+# key sizes every version before 4 defaulted to (min with the column count)
+_OLD_KEY_DIM, _OLD_REFINE_DIM = 256, 512
 #: The integer parameters, in the order a saved index stores them.
 STORED_INTEGERS = tuple(f.name for f in fields(IndexParameters) if f.name not in SAVED_APART)
 _FIRST_PARAMS = 8  # files written before the later parameters existed: their defaults apply
@@ -78,20 +85,31 @@ def read_parameters(arrays: Mapping[str, np.ndarray],
                          f"({len(STORED_INTEGERS)},) integers")
     options: dict[str, Any] = {name: int(value) for name, value in zip(STORED_INTEGERS, params)}
     options["yaw_refine"] = bool(options["yaw_refine"])
-    if not rekey:  # the old clip was in int8 steps: re-keyed files take today's default
+    weights = get("weights")
+    if rekey:
+        _take_todays_key_sizes(options, len(weights) // max(options["sectors"], 1))
+    if _version(get) != 2:  # version 2's clip was in int8 steps: it takes today's default
         options["key_clip_sigma"] = float(get("key_clip_sigma"))
-    return IndexParameters(storage=str(get("storage")), **options), get("weights")
+    return IndexParameters(storage=str(get("storage")), **options), weights
+
+
+def _take_todays_key_sizes(options: dict[str, Any], width: int) -> None:
+    """Key sizes of an older file that were its defaults (a width of R columns) become today's."""
+    key_dim = min(_OLD_KEY_DIM, width)
+    refine_dim = min(_OLD_REFINE_DIM, width) if min(_OLD_REFINE_DIM, width) > key_dim else 0
+    if options["key_dim"] == key_dim and options.get("refine_dim", refine_dim) == refine_dim:
+        options["key_dim"] = options["refine_dim"] = None
 
 
 def read_arrays(arrays: Mapping[str, np.ndarray], prefix: str, parameters: IndexParameters,
                 dimension: int) -> StoredArrays:
     """The saved descriptors and keys, checked against the (resolved) ``parameters``.
 
-    Keys of an older construction come back as ``None``.
+    Candidate and refine keys of an older construction come back as ``None``.
     """
     get = _getter(arrays, prefix)
     p = parameters
-    descriptors, yaw = get("descriptors"), get("yaw_keys")
+    descriptors = get("descriptors")
     n = len(descriptors)
     if descriptors.shape != (n, dimension) or descriptors.dtype != np.dtype(p.storage):
         raise ValueError(f"descriptors have shape {descriptors.shape} {descriptors.dtype}, "
@@ -99,6 +117,7 @@ def read_arrays(arrays: Mapping[str, np.ndarray], prefix: str, parameters: Index
     if not np.all(np.isfinite(descriptors)):
         raise ValueError("descriptors contain NaN or inf")
     keys = refine = None
+    yaw = get("yaw_keys")
     if _version(get) not in _REKEYED_VERSIONS:
         keys, refine = get("keys"), get("refine_keys")
         if refine.shape != (n, p.refine_dim) or refine.dtype != np.int8:
