@@ -40,6 +40,7 @@ Conventions
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -128,6 +129,7 @@ def verify_loop(
     max_correspondence_distance: float | None = None,
     max_iterations: int = 500,
     max_threads: int = 0,
+    timings: dict[str, float] | None = None,
 ) -> Verification:
     """Register ``query_points`` (N, 3) onto ``match_points`` (M, 3) with KISS-ICP.
 
@@ -136,8 +138,10 @@ def verify_loop(
     (:mod:`~vbrl_ros.detection.coarse_alignment`; both clouds levelled, z up). ``max_correspondence_distance``
     (default ``voxel_size``) gates the final ICP stage and defines inliers and
     fitness. ``max_threads=0`` lets KISS-ICP (TBB) use every core. Empty or tiny
-    clouds give ``converged=False`` and ``fitness=0`` instead of raising.
+    clouds give ``converged=False`` and ``fitness=0`` instead of raising. ``timings``, when
+    given, accumulates the CPU milliseconds each stage took (``vbrl bench --verification``).
     """
+    laps = _Laps(timings)
     if voxel_size <= 0:
         raise ValueError(f"voxel_size must be positive, got {voxel_size}")
     guess = None if initial_guess is None else np.asarray(initial_guess, dtype=np.float64)
@@ -158,9 +162,12 @@ def verify_loop(
     if len(match) < _MIN_POINTS or len(source) < _MIN_POINTS:
         return _failure(np.eye(4) if guess is None else guess, n_query=n_structure)
     stages = COARSE_TO_FINE[:-1]
+    match_structure = match[~_ground_mask(match)] if guess is None else None
+    laps.lap("prepare")
     if guess is None:
-        guess = coarse_alignment(source[:n_structure], match[~_ground_mask(match)]).T_query_match
+        guess = coarse_alignment(source[:n_structure], match_structure).T_query_match
         stages = stages[1:]  # the search is within a cell and a few degrees: no 8-voxel stage
+        laps.lap("heading search")
     guess = _rigid(guess)
 
     registration = Registration(
@@ -181,9 +188,11 @@ def verify_loop(
         stage_voxel = factor * voxel_size
         sigma = 2.0 * stage_voxel
         T_mq = _align(registration, source, maps.at(stage_voxel), T_mq, 3.0 * sigma, sigma)
+        laps.lap("icp coarse")
     # The final stage only polishes: gate at the inlier threshold, kernel
     # threshold / 3 (half weight at 0.37 m for the default 1 m threshold).
     T_mq = _align(registration, source, maps.at(voxel_size), T_mq, threshold, threshold / 3.0)
+    laps.lap("icp fine")
 
     # Convergence = the final stage is a fixed point: a few more of its iterations from its
     # own result barely move (the bindings do not report iterations).
@@ -192,12 +201,30 @@ def verify_loop(
     T_again = _align(check, source, maps.at(voxel_size), T_mq, threshold, threshold / 3.0)
     step = np.linalg.inv(T_mq) @ T_again
     settled = bool(np.linalg.norm(step[:3, 3]) < 0.01 * voxel_size and _angle(step) < 1e-3)
+    laps.lap("convergence check")
     # Fitness over structure only: ground overlaps at almost any two places,
     # and far ground rings are too sparse to overlap even at the right one.
     scored = n_structure if n_structure >= _MIN_POINTS else len(source)
     check = _evaluate(source, scored, match, np.linalg.inv(T_mq), threshold, settled)
+    laps.lap("evaluate")
     evidence = agreement(query, match, check.T_query_match, voxel_size, _ground_mask)
+    laps.lap("agreement")
     return replace(check, fitness=evidence.overlap, constraint=evidence.constraint)
+
+
+class _Laps:
+    """CPU milliseconds between successive :meth:`lap` calls, summed per stage into ``timings``
+    (CPU time: on a shared machine it is what the stage costs, wall-clock is also the wait)."""
+
+    def __init__(self, timings: dict[str, float] | None) -> None:
+        self.timings, self.start = timings, time.process_time()
+
+    def lap(self, stage: str) -> None:
+        if self.timings is None:
+            return
+        now = time.process_time()
+        self.timings[stage] = self.timings.get(stage, 0.0) + 1e3 * (now - self.start)
+        self.start = now
 
 
 class _MapsOf:
