@@ -2,7 +2,7 @@
 it decided, on simulated 64-beam keyframes with known poses.
 
 The keyframes are what the node verifies: each scan levelled on its own ground
-(the built-in recognition featurizer's frame) and thinned to one point per
+(the built-in recognition featurizer's frame, turned to a random heading) and thinned to one point per
 ``VOXEL_M`` (:func:`~vbrl_ros.detection.detector.verification_cloud`, ~6k points).
 Pairs are revisits 0.5-4 m apart, some driven the other way round, and unrelated
 places more than ``UNRELATED_M`` apart; every pair is verified without an initial
@@ -26,7 +26,7 @@ from vbrl_ros.detection.detector import (
     to_sensor_frames,
     verification_cloud,
 )
-from vbrl_ros.detection.registration import verify_loop
+from vbrl_ros.detection.registration import verify_loop, yaw_guess
 from vbrl_ros.detection.settings import DetectorSettings
 
 VOXEL_M = 1.0
@@ -75,7 +75,10 @@ def keyframe_pairs(revisits: int = 24, unrelated: int = 12, seed: int = 3) -> li
     def keyframe(i: int) -> tuple[np.ndarray, np.ndarray]:
         if i not in keyframes:
             points = run.scan(i).points[:, :3]
-            frame = featurizer.frame(points).matrix
+            # the town's streets are all at right angles: a heading of its own per keyframe makes
+            # the relative yaws arbitrary, as on real recordings (and the heading search earn its keep)
+            turn = yaw_guess(np.random.default_rng([seed, i]).uniform(-math.pi, math.pi))
+            frame = turn @ featurizer.frame(points).matrix
             keyframes[i] = (verification_cloud(points, frame, VOXEL_M), frame)
         return keyframes[i]
 
