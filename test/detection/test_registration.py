@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -279,11 +278,11 @@ def test_points_beyond_any_sensors_range_are_dropped_before_storage_and_verifica
 
 
 def test_ground_mask_separates_ground_from_structure(views):
-    from vbrl_ros.detection.registration import _ground_mask
+    from vbrl_ros.detection.ground import ground_mask
 
     query, _ = views
-    ground = _ground_mask(query)
+    ground = ground_mask(query)
     truly_ground = query[:, 2] < -1.8 + 0.1  # the sensor is 1.8 m above flat ground
     assert np.mean(ground[truly_ground]) > 0.95  # recall
     assert np.mean(truly_ground[ground]) > 0.9  # precision (wall bottoms count as ground)
-    assert _ground_mask(np.empty((0, 3))).shape == (0,)
+    assert ground_mask(np.empty((0, 3))).shape == (0,)
