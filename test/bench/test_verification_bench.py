@@ -31,7 +31,7 @@ def test_pairs_are_revisits_one_of_them_reversed_and_an_unrelated_place(pairs):
 def test_stages_add_up_and_the_decisions_are_right(pairs):
     results = measure(pairs, repeats=1)
     cpu = results["cpu_ms"]
-    for column in ("revisits", "unrelated", "all"):
+    for column in ("revisits", "unrelated", "all", "all, query shared"):
         stages = {k: v for k, v in cpu[column].items() if k != "total"}
         assert {"prepare", "heading search", "icp fine", "agreement"} <= set(stages)
         assert all(v >= 0 for v in stages.values())
