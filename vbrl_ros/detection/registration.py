@@ -72,9 +72,9 @@ SEARCHED_COARSE_TO_FINE = (2.0, 1.0)
 SEARCHED_COARSE_ITERATIONS = 10
 SEARCHED_COARSE_STRUCTURE = 400
 # Registration source structure points beyond this are left out (a seeded random subset; all
-# the ground stays): ICP's cost grows with them, and its pose did not improve beyond 1500 on
+# the ground stays): ICP's cost grows with them, and its pose did not improve beyond 1200 on
 # simulated 64-beam revisits (~2200 at a 1 m voxel); sparser sensors never reach it.
-FINE_SOURCE_STRUCTURE = 1500
+FINE_SOURCE_STRUCTURE = 1200
 # Fewer inliers than this cannot constrain 6 DoF robustly (nor give a variance).
 _MIN_POINTS = 20
 _CONVERGENCE_CRITERION = 1e-4  # KISS-ICP default: stop when |dx| < 1e-4
