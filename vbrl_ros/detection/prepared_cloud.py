@@ -3,8 +3,8 @@
 Verifying a candidate needs, per cloud, the same few things several times over: the
 thinned points, their ground, a KD-tree (registration's fitness and the agreement
 both search it), the KISS-ICP map of the match, the registration source and the
-heading search of the query. Computed per use they were a third of the cost of a
-verification; here each is computed on first use and kept, so a query verified
+heading search of the query. Computed per use, the same tree or mask was built two or
+three times per candidate; here each is computed on first use and kept, so a query verified
 against several candidates (:class:`~vbrl_ros.detection.registration.QueryVerifier`)
 prepares itself once, and a caller may keep a database keyframe's too.
 

@@ -15,8 +15,8 @@ Three adaptations, each measured on ray-cast scenes (test_registration.py):
   around a point (reach 1-2 map voxels), so from an initial guess the same
   registration runs on maps of voxel 8v, 2v, then v (v = ``voxel_size``), each
   from the previous result. The heading search starts within a metre and a few
-  degrees (sub-step and sub-cell): the v map alone reaches that, in fewer
-  iterations than a 2v stage and then a v stage took;
+  degrees (sub-step and sub-cell): a short 2v stage on a few hundred points, then
+  the v stage;
 * the ground is thinned in the source (:mod:`~vbrl_ros.detection.ground`): otherwise its
   sensor-centric sampling (rings, the blind disc) locks the translation;
 * points are shuffled before voxel downsampling
@@ -66,8 +66,8 @@ __all__ = ["COARSE_TO_FINE", "MAX_POINT_RANGE_M", "QueryVerifier", "Verification
 COARSE_TO_FINE = (8.0, 2.0, 1.0)
 # The same after the heading search, whose coarse stage runs at most SEARCHED_COARSE_ITERATIONS
 # on at most SEARCHED_COARSE_STRUCTURE structure points: on simulated revisits it had nothing
-# left to do after 5 iterations (the fine stage alone ended at the same pose), but on a
-# hand-held recording's sparse clouds, without it, a few true closures more ended unsettled.
+# left to do after 5 iterations (the fine stage alone ended at the same pose), but on the
+# hand-held recording's sparse clouds, without it, a few more true closures ended unsettled.
 SEARCHED_COARSE_TO_FINE = (2.0, 1.0)
 SEARCHED_COARSE_ITERATIONS = 10
 SEARCHED_COARSE_STRUCTURE = 400
@@ -193,7 +193,7 @@ class QueryVerifier:
         stages, coarse, coarse_source = COARSE_TO_FINE[:-1], self.registration, icp_source
         if guess is None:
             guess = query.heading_search.align(match.structure).T_query_match
-            # within a metre and a few degrees (see the module docstring): a short coarse stage
+            # within a metre and a few degrees (see SEARCHED_COARSE_TO_FINE): a short coarse stage
             stages, coarse = SEARCHED_COARSE_TO_FINE[:-1], self.coarse
             coarse_source = query.sampled_source(SEARCHED_COARSE_STRUCTURE)
             laps.lap("heading search")
