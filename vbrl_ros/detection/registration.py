@@ -245,7 +245,8 @@ class QueryVerifier:
 
 class _Laps:
     """CPU milliseconds between successive :meth:`lap` calls, summed per stage into ``timings``
-    (CPU time: on a shared machine it is what the stage costs, wall-clock is also the wait)."""
+    (CPU time: when other processes share the cores it is what the stage costs; wall-clock also
+    counts the wait)."""
 
     def __init__(self, timings: dict[str, float] | None) -> None:
         self.timings, self.start = timings, time.process_time()
