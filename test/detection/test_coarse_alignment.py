@@ -8,7 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from vbrl_ros.detection.coarse_alignment import CELL_M, YAW_STEP_DEG, coarse_alignment
+from vbrl_ros.detection.coarse_alignment import (
+    CELL_M,
+    YAW_STEP_DEG,
+    HeadingSearch,
+    coarse_alignment,
+)
 
 sim = pytest.importorskip("vbrl_ros.simulator")
 SENSOR_HEIGHT_M = 1.8  # the route's default: the ground is flat at -1.8 m in the sensor frame
@@ -69,3 +74,29 @@ def test_an_unrelated_place_correlates_less_than_the_same_place(run):
 def test_empty_structure_gives_a_zero_score():
     found = coarse_alignment(np.empty((0, 3)), np.empty((0, 3)))
     assert found.score == 0.0 and found.T_query_match.shape == (4, 4)
+
+
+def test_between_the_steps_yaw_and_translation_are_interpolated(run):
+    # halfway between two searched headings: the steps alone would be 5 degrees off
+    turn = np.deg2rad(YAW_STEP_DEG / 2)
+    c, s = math.cos(turn), math.sin(turn)
+    errors = []
+    for q, m in revisits(run, turned_deg=150.0, count=4):
+        query, match = run.scan(q), run.scan(m)
+        truth = np.linalg.inv(query.pose) @ match.pose
+        turned = structure(match.points)[:, :3] @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])  # R(turn)^-1 p
+        found = HeadingSearch(structure(query.points)).align(turned).T_query_match
+        yaw = math.remainder(yaw_of(found) - turn - yaw_of(truth), 2 * math.pi)  # found = truth R(turn)
+        errors.append((abs(math.degrees(yaw)), np.linalg.norm(found[:2, 3] - truth[:2, 3])))
+    errors = np.array(errors)
+    assert errors[:, 0].max() < 0.5 * YAW_STEP_DEG and np.median(errors[:, 0]) < 2.0, errors
+    assert errors[:, 1].max() < 1.5 * CELL_M, errors
+
+
+def test_one_query_searched_against_many_matches_as_one_pair_each(run):
+    (q, m), = revisits(run, turned_deg=150.0, count=1)
+    query, match = structure(run.scan(q).points), structure(run.scan(m).points)
+    search = HeadingSearch(query)
+    for other in (match, structure(run.scan(0).points)):
+        np.testing.assert_array_equal(search.align(other).T_query_match,
+                                      coarse_alignment(query, other).T_query_match)

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
+from vbrl_ros.detection.prepared_cloud import PreparedCloud
 from vbrl_ros.detection.registration import (
     MAX_POINT_RANGE_M,
+    QueryVerifier,
     Verification,
     downsample_for_storage,
     verify_loop,
@@ -279,11 +279,32 @@ def test_points_beyond_any_sensors_range_are_dropped_before_storage_and_verifica
 
 
 def test_ground_mask_separates_ground_from_structure(views):
-    from vbrl_ros.detection.registration import _ground_mask
+    from vbrl_ros.detection.ground import ground_mask
 
     query, _ = views
-    ground = _ground_mask(query)
+    ground = ground_mask(query)
     truly_ground = query[:, 2] < -1.8 + 0.1  # the sensor is 1.8 m above flat ground
     assert np.mean(ground[truly_ground]) > 0.95  # recall
     assert np.mean(truly_ground[ground]) > 0.9  # precision (wall bottoms count as ground)
-    assert _ground_mask(np.empty((0, 3))).shape == (0,)
+    assert ground_mask(np.empty((0, 3))).shape == (0,)
+
+
+# -- several candidates of one query --------------------------------------------
+
+
+def test_a_query_verifier_gives_verify_loops_results_for_each_candidate(views):
+    query, match = views
+    rng = np.random.default_rng(5)
+    other = scan(make_scene(7), pose(0.0, 0.0, 1.0), rng)
+    verifier = QueryVerifier(query)
+    for candidate in (downsample_for_storage(match), other, match):
+        alone = verify_loop(query, candidate)
+        shared = verifier.verify(candidate)
+        np.testing.assert_allclose(shared.T_query_match, alone.T_query_match, atol=1e-9)
+        assert (shared.fitness, shared.constraint, shared.converged) == (alone.fitness, alone.constraint,
+                                                                         alone.converged)
+    # a prepared match cloud a caller keeps gives the same as its points
+    kept = PreparedCloud(match, 1.0)
+    np.testing.assert_allclose(verifier.verify(kept).T_query_match, verifier.verify(match).T_query_match, atol=1e-9)
+    with pytest.raises(ValueError, match="voxel"):
+        verifier.verify(PreparedCloud(match, 2.0))

@@ -12,11 +12,19 @@ constant-velocity prediction, so the initial error can be metres and degrees.
 Three adaptations, each measured on ray-cast scenes (test_registration.py):
 
 * coarse-to-fine: KISS-ICP's neighbour search only looks in the 27 voxels
-  around a point (reach 1-2 map voxels), so the same registration runs on maps
-  of voxel 8v, 2v, then v (v = ``voxel_size``), each from the previous result;
-* the ground is thinned in the source (:func:`_ground_mask`): otherwise its
+  around a point (reach 1-2 map voxels), so from an initial guess the same
+  registration runs on maps of voxel 8v, 2v, then v (v = ``voxel_size``), each
+  from the previous result. The heading search starts within a metre and a few
+  degrees (sub-step and sub-cell): a short 2v stage on a few hundred points, then
+  the v stage;
+* the ground is thinned in the source (:mod:`~vbrl_ros.detection.ground`): otherwise its
   sensor-centric sampling (rings, the blind disc) locks the translation;
-* points are shuffled before voxel downsampling (:func:`_shuffled`).
+* points are shuffled before voxel downsampling
+  (:func:`~vbrl_ros.detection.prepared_cloud.shuffled`).
+
+Everything derived from one cloud is computed once
+(:class:`~vbrl_ros.detection.prepared_cloud.PreparedCloud`); :class:`QueryVerifier`
+keeps the query's for all its candidates.
 
 Conventions
 -----------
@@ -40,31 +48,37 @@ Conventions
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import time
+from dataclasses import dataclass
 
 import numpy as np
 from kiss_icp.mapping import VoxelHashMap
 from kiss_icp.registration import Registration
-from kiss_icp.voxelization import voxel_down_sample
-from scipy.spatial import cKDTree
 
-from vbrl_ros.detection.coarse_alignment import coarse_alignment
-from vbrl_ros.detection.overlap import MIN_CONSTRAINT, agreement
+from vbrl_ros.detection.overlap import MIN_CONSTRAINT, agreement_of
+from vbrl_ros.detection.pose_covariance import inlier_statistics
+from vbrl_ros.detection.prepared_cloud import MAX_POINT_RANGE_M, PreparedCloud, thinned
 
-# Map voxel size of each stage as a multiple of ``voxel_size`` (coarse to fine).
+__all__ = ["COARSE_TO_FINE", "MAX_POINT_RANGE_M", "QueryVerifier", "Verification", "downsample_for_storage",
+           "verify_loop", "yaw_guess"]
+
+# Map voxel size of each stage as a multiple of ``voxel_size`` (coarse to fine), from an initial guess.
 COARSE_TO_FINE = (8.0, 2.0, 1.0)
-# KISS-ICP's default: at most 20 points per map voxel (with a minimum spacing of
-# voxel/sqrt(20) between them), enough for sub-voxel nearest neighbours.
-_MAX_POINTS_PER_VOXEL = 20
+# The same after the heading search, whose coarse stage runs at most SEARCHED_COARSE_ITERATIONS
+# on at most SEARCHED_COARSE_STRUCTURE structure points: on simulated revisits it had nothing
+# left to do after 5 iterations (the fine stage alone ended at the same pose), but on the
+# hand-held recording's sparse clouds, without it, a few more true closures ended unsettled.
+SEARCHED_COARSE_TO_FINE = (2.0, 1.0)
+SEARCHED_COARSE_ITERATIONS = 10
+SEARCHED_COARSE_STRUCTURE = 400
+# Registration source structure points beyond this are left out (a seeded random subset; all
+# the ground stays): ICP's cost grows with them, and its pose did not improve beyond 1200 on
+# simulated 64-beam revisits (~2200 at a 1 m voxel); sparser sensors never reach it.
+FINE_SOURCE_STRUCTURE = 1200
 # Fewer inliers than this cannot constrain 6 DoF robustly (nor give a variance).
 _MIN_POINTS = 20
 _CONVERGENCE_CRITERION = 1e-4  # KISS-ICP default: stop when |dx| < 1e-4
 _CHECK_ITERATIONS = 3  # of the final stage again, to see that it has settled
-# Ground source points are kept at this many voxels (structure at 1.5), see _ground_mask.
-_GROUND_THINNING = 4.0
-# No LiDAR measures farther than this along any axis (the longest-range ones reach ~500 m);
-# points beyond are corrupt and are dropped before storage and verification.
-MAX_POINT_RANGE_M = 1000.0
 
 
 @dataclass(frozen=True)
@@ -101,22 +115,7 @@ def yaw_guess(yaw_rad: float) -> np.ndarray:
 
 def downsample_for_storage(points: np.ndarray, voxel_size: float = 1.0) -> np.ndarray:
     """What the keyframe database stores per keyframe: one point per voxel, (M, 3) float32."""
-    points = _shuffled(_clean(points))
-    if len(points) == 0:
-        return np.empty((0, 3), dtype=np.float32)
-    return voxel_down_sample(points, float(voxel_size)).astype(np.float32)
-
-
-def _shuffled(points: np.ndarray) -> np.ndarray:
-    """A fixed pseudo-random permutation of the points.
-
-    KISS-ICP's voxel_down_sample keeps the *first* point of each voxel; in scan
-    order that is always the lowest beam / earliest azimuth, a systematic
-    offset of up to a voxel that differs between two viewpoints and biases
-    scan-to-scan ICP (~10 cm -> ~6 cm with 1 m stored clouds).
-    Seeded, so results are reproducible.
-    """
-    return points[np.random.default_rng(0).permutation(len(points))]
+    return thinned(points, voxel_size).astype(np.float32)
 
 
 def verify_loop(
@@ -128,6 +127,7 @@ def verify_loop(
     max_correspondence_distance: float | None = None,
     max_iterations: int = 500,
     max_threads: int = 0,
+    timings: dict[str, float] | None = None,
 ) -> Verification:
     """Register ``query_points`` (N, 3) onto ``match_points`` (M, 3) with KISS-ICP.
 
@@ -136,82 +136,127 @@ def verify_loop(
     (:mod:`~vbrl_ros.detection.coarse_alignment`; both clouds levelled, z up). ``max_correspondence_distance``
     (default ``voxel_size``) gates the final ICP stage and defines inliers and
     fitness. ``max_threads=0`` lets KISS-ICP (TBB) use every core. Empty or tiny
-    clouds give ``converged=False`` and ``fitness=0`` instead of raising.
+    clouds give ``converged=False`` and ``fitness=0`` instead of raising. ``timings``, when
+    given, accumulates the CPU milliseconds each stage took (``vbrl bench --verification``).
+    Several candidates of one query: :class:`QueryVerifier` prepares the query once.
     """
-    if voxel_size <= 0:
-        raise ValueError(f"voxel_size must be positive, got {voxel_size}")
-    guess = None if initial_guess is None else np.asarray(initial_guess, dtype=np.float64)
-    if guess is not None and (guess.shape != (4, 4) or not np.all(np.isfinite(guess))):
-        raise ValueError("initial_guess must be a finite 4x4 matrix")
-    threshold = voxel_size if max_correspondence_distance is None else max_correspondence_distance
-    threshold = float(threshold)
-    if threshold <= 0:
-        raise ValueError(f"max_correspondence_distance must be positive, got {threshold}")
-
-    # KISS-ICP's preprocessing: the map keeps the scan at voxel/2 (a no-op for a
-    # cloud from downsample_for_storage), the source is sparser (see _source).
-    match = _shuffled(_clean(match_points))
-    query = _shuffled(_clean(query_points))
-    match = voxel_down_sample(match, 0.5 * voxel_size) if len(match) else match
-    query = voxel_down_sample(query, 0.5 * voxel_size) if len(query) else query
-    source, n_structure = _source(query, voxel_size)
-    if len(match) < _MIN_POINTS or len(source) < _MIN_POINTS:
-        return _failure(np.eye(4) if guess is None else guess, n_query=n_structure)
-    stages = COARSE_TO_FINE[:-1]
-    if guess is None:
-        guess = coarse_alignment(source[:n_structure], match[~_ground_mask(match)]).T_query_match
-        stages = stages[1:]  # the search is within a cell and a few degrees: no 8-voxel stage
-    guess = _rigid(guess)
-
-    registration = Registration(
-        max_num_iterations=int(max_iterations),
-        convergence_criterion=_CONVERGENCE_CRITERION,
-        max_num_threads=int(max_threads),
-    )
-    maps = _MapsOf(match)
-    # KISS-ICP solves for T_match_query (query points into the match map).
-    T_mq = np.linalg.inv(guess)
-    for factor in stages:
-        # A coarse stage: the map voxel sets the reach of the neighbour search;
-        # the source stays the fine one (a coarser source lost the basin in our
-        # tests). sigma = 2 map voxels ~ the error this stage must remove; as in
-        # KISS-ICP's pipeline we gate at 3 sigma and pass sigma as the kernel.
-        # Its Geman-McClure weight is k^2 / (k + r^2)^2, i.e. half weight at
-        # r = 0.64 sqrt(k): 2.6 m on the 8 m map, 1.3 m on the 2 m map (v = 1).
-        stage_voxel = factor * voxel_size
-        sigma = 2.0 * stage_voxel
-        T_mq = _align(registration, source, maps.at(stage_voxel), T_mq, 3.0 * sigma, sigma)
-    # The final stage only polishes: gate at the inlier threshold, kernel
-    # threshold / 3 (half weight at 0.37 m for the default 1 m threshold).
-    T_mq = _align(registration, source, maps.at(voxel_size), T_mq, threshold, threshold / 3.0)
-
-    # Convergence = the final stage is a fixed point: a few more of its iterations from its
-    # own result barely move (the bindings do not report iterations).
-    check = Registration(max_num_iterations=_CHECK_ITERATIONS, convergence_criterion=_CONVERGENCE_CRITERION,
-                         max_num_threads=int(max_threads))
-    T_again = _align(check, source, maps.at(voxel_size), T_mq, threshold, threshold / 3.0)
-    step = np.linalg.inv(T_mq) @ T_again
-    settled = bool(np.linalg.norm(step[:3, 3]) < 0.01 * voxel_size and _angle(step) < 1e-3)
-    # Fitness over structure only: ground overlaps at almost any two places,
-    # and far ground rings are too sparse to overlap even at the right one.
-    scored = n_structure if n_structure >= _MIN_POINTS else len(source)
-    check = _evaluate(source, scored, match, np.linalg.inv(T_mq), threshold, settled)
-    evidence = agreement(query, match, check.T_query_match, voxel_size, _ground_mask)
-    return replace(check, fitness=evidence.overlap, constraint=evidence.constraint)
+    laps = _Laps(timings)
+    verifier = QueryVerifier(query_points, voxel_size=voxel_size,
+                             max_correspondence_distance=max_correspondence_distance,
+                             max_iterations=max_iterations, max_threads=max_threads)
+    laps.lap("prepare")
+    return verifier.verify(match_points, initial_guess=initial_guess, timings=timings)
 
 
-class _MapsOf:
-    """KISS-ICP maps of one cloud, one per voxel size, each built once."""
+class QueryVerifier:
+    """:func:`verify_loop` of one query against any number of candidates: the query's thinning,
+    ground, registration source, KD-tree and heading-search image are computed once (on first
+    use), not per candidate. Arguments as :func:`verify_loop`'s."""
 
-    def __init__(self, points: np.ndarray) -> None:
-        self.points, self.maps = points, {}
+    def __init__(self, query_points: np.ndarray, *, voxel_size: float = 1.0,
+                 max_correspondence_distance: float | None = None, max_iterations: int = 500,
+                 max_threads: int = 0) -> None:
+        if voxel_size <= 0:
+            raise ValueError(f"voxel_size must be positive, got {voxel_size}")
+        threshold = voxel_size if max_correspondence_distance is None else max_correspondence_distance
+        if float(threshold) <= 0:
+            raise ValueError(f"max_correspondence_distance must be positive, got {threshold}")
+        self.voxel, self.threshold = float(voxel_size), float(threshold)
+        self.query = PreparedCloud(query_points, self.voxel)
+        self.registration = Registration(max_num_iterations=int(max_iterations),
+                                         convergence_criterion=_CONVERGENCE_CRITERION,
+                                         max_num_threads=int(max_threads))
+        self.coarse = Registration(max_num_iterations=min(int(max_iterations), SEARCHED_COARSE_ITERATIONS),
+                                   convergence_criterion=_CONVERGENCE_CRITERION, max_num_threads=int(max_threads))
+        self.check = Registration(max_num_iterations=_CHECK_ITERATIONS,
+                                  convergence_criterion=_CONVERGENCE_CRITERION, max_num_threads=int(max_threads))
 
-    def at(self, voxel: float) -> VoxelHashMap:
-        if voxel not in self.maps:
-            # max_distance only prunes the map in update(); add_points keeps everything.
-            self.maps[voxel] = VoxelHashMap(voxel, np.inf, max_points_per_voxel=_MAX_POINTS_PER_VOXEL)
-            self.maps[voxel].add_points(self.points)
-        return self.maps[voxel]
+    def verify(self, match: np.ndarray | PreparedCloud, *, initial_guess: np.ndarray | None = None,
+               timings: dict[str, float] | None = None) -> Verification:
+        """Register the query onto ``match`` ((M, 3) points, or a :class:`PreparedCloud` at this
+        verifier's voxel that a caller keeps for a keyframe it verifies often)."""
+        laps = _Laps(timings)
+        guess = None if initial_guess is None else np.asarray(initial_guess, dtype=np.float64)
+        if guess is not None and (guess.shape != (4, 4) or not np.all(np.isfinite(guess))):
+            raise ValueError("initial_guess must be a finite 4x4 matrix")
+        if not isinstance(match, PreparedCloud):
+            match = PreparedCloud(match, self.voxel)
+        elif match.voxel != self.voxel:
+            raise ValueError(f"the match was prepared at voxel {match.voxel}, the query at {self.voxel}")
+        query, voxel, threshold = self.query, self.voxel, self.threshold
+        source, n_structure = query.source
+        laps.lap("prepare")
+        if len(match.points) < _MIN_POINTS or len(source) < _MIN_POINTS:
+            return _failure(np.eye(4) if guess is None else guess, n_query=n_structure)
+        icp_source = query.sampled_source(FINE_SOURCE_STRUCTURE)
+        # from a guess, the coarse stages may have metres and 10 degrees to go: full stages
+        stages, coarse, coarse_source = COARSE_TO_FINE[:-1], self.registration, icp_source
+        if guess is None:
+            guess = query.heading_search.align(match.structure).T_query_match
+            # within a metre and a few degrees (see SEARCHED_COARSE_TO_FINE): a short coarse stage
+            stages, coarse = SEARCHED_COARSE_TO_FINE[:-1], self.coarse
+            coarse_source = query.sampled_source(SEARCHED_COARSE_STRUCTURE)
+            laps.lap("heading search")
+        # KISS-ICP solves for T_match_query (query points into the match map).
+        T_mq = np.linalg.inv(_rigid(guess))
+        for factor in stages:
+            # A coarse stage: the map voxel sets the reach of the neighbour search;
+            # the source stays the fine one (a coarser source lost the basin in our
+            # tests). sigma = 2 map voxels ~ the error this stage must remove; as in
+            # KISS-ICP's pipeline we gate at 3 sigma and pass sigma as the kernel.
+            # Its Geman-McClure weight is k^2 / (k + r^2)^2, i.e. half weight at
+            # r = 0.64 sqrt(k): 2.6 m on the 8 m map, 1.3 m on the 2 m map (v = 1).
+            sigma = 2.0 * factor * voxel
+            T_mq = _align(coarse, coarse_source, match.voxel_map(factor * voxel), T_mq, 3.0 * sigma, sigma)
+            laps.lap("icp coarse")
+        # The final stage only polishes: gate at the inlier threshold, kernel
+        # threshold / 3 (half weight at 0.37 m for the default 1 m threshold).
+        fine = match.voxel_map(voxel)
+        T_mq = _align(self.registration, icp_source, fine, T_mq, threshold, threshold / 3.0)
+        laps.lap("icp fine")
+
+        # Convergence = the final stage is a fixed point: a few more of its iterations from its
+        # own result barely move (the bindings do not report iterations).
+        T_again = _align(self.check, icp_source, fine, T_mq, threshold, threshold / 3.0)
+        step = np.linalg.inv(T_mq) @ T_again
+        settled = bool(np.linalg.norm(step[:3, 3]) < 0.01 * voxel and _angle(step) < 1e-3)
+        laps.lap("convergence check")
+        # Fitness over structure only: ground overlaps at almost any two places,
+        # and far ground rings are too sparse to overlap even at the right one.
+        T_qm = np.linalg.inv(T_mq)
+        scored = n_structure if n_structure >= _MIN_POINTS else len(source)
+        inliers = inlier_statistics(source, match, T_qm, threshold, _MIN_POINTS)
+        n_in = int(inliers.inlier.sum())
+        laps.lap("evaluate")
+        evidence = agreement_of(query, match, T_qm)
+        laps.lap("agreement")
+        ok = inliers.covariance is not None
+        return Verification(
+            T_query_match=T_qm,
+            fitness=evidence.overlap,
+            rmse=inliers.rmse,
+            covariance=inliers.covariance if ok else np.full((6, 6), np.nan),
+            converged=bool(settled and ok),
+            n_query_points=scored,
+            n_inliers=n_in,
+            constraint=evidence.constraint,
+        )
+
+
+class _Laps:
+    """CPU milliseconds between successive :meth:`lap` calls, summed per stage into ``timings``
+    (CPU time: when other processes share the cores it is what the stage costs; wall-clock also
+    counts the wait)."""
+
+    def __init__(self, timings: dict[str, float] | None) -> None:
+        self.timings, self.start = timings, time.process_time()
+
+    def lap(self, stage: str) -> None:
+        if self.timings is None:
+            return
+        now = time.process_time()
+        self.timings[stage] = self.timings.get(stage, 0.0) + 1e3 * (now - self.start)
+        self.start = now
 
 
 def _align(
@@ -233,107 +278,6 @@ def _align(
     return np.asarray(T, dtype=np.float64)
 
 
-def _source(query: np.ndarray, voxel: float) -> tuple[np.ndarray, int]:
-    """(points, n_structure): the registration source, structure points first.
-
-    Structure (non-ground) at KISS-ICP's 1.5-voxel downsampling; ground thinned
-    to one point per ``_GROUND_THINNING`` voxels (see :func:`_ground_mask`).
-    """
-    ground = _ground_mask(query)
-    structure = voxel_down_sample(query[~ground], 1.5 * voxel) if (~ground).any() else query[:0]
-    flat = voxel_down_sample(query[ground], _GROUND_THINNING * voxel) if ground.any() else query[:0]
-    return np.ascontiguousarray(np.concatenate([structure, flat])), len(structure)
-
-
-def _ground_mask(points: np.ndarray, cell: float = 2.0, tolerance: float = 0.3) -> np.ndarray:
-    """True for points on the ground (sensor roughly upright, z up, as for Scan Context).
-
-    Why: at KISS-ICP's 1.5-voxel downsampling, ground is 60-80 % of a single
-    scan, and its sampling is sensor-centric (rings, the blind disc under the
-    sensor). Scan-to-scan, those artefacts pull the solution towards "both
-    sensors at the same place" and make unrelated places overlap on the
-    ground alone. KISS-ICP odometry avoids this because its map accumulates
-    many scans; a loop closure compares two single scans. Ground is kept (it
-    fixes z, roll, pitch) but thinned so structure decides x, y, yaw.
-
-    A point is ground if it lies within ``tolerance`` of its grid cell's lowest
-    point and that cell's lowest point is within 0.5 m of the lowest point of
-    the 3x3 neighbouring cells (so car roofs and wall tops are not ground).
-    """
-    if len(points) == 0:
-        return np.zeros(0, dtype=bool)
-    ij = np.floor(points[:, :2] / cell).astype(np.int64)
-    ij -= ij.min(axis=0) - 1  # non-negative, with a free border for neighbour lookups
-    width = int(ij[:, 1].max()) + 2
-    keys, inverse = np.unique(ij[:, 0] * width + ij[:, 1], return_inverse=True)
-    lowest = np.full(len(keys), np.inf)
-    np.minimum.at(lowest, inverse, points[:, 2])
-    reference = lowest.copy()
-    for offset in (-width - 1, -width, -width + 1, -1, 1, width - 1, width, width + 1):
-        position = np.minimum(np.searchsorted(keys, keys + offset), len(keys) - 1)
-        found = keys[position] == keys + offset
-        reference[found] = np.minimum(reference[found], lowest[position[found]])
-    ground_cell = lowest - reference < 0.5
-    return (points[:, 2] - lowest[inverse] < tolerance) & ground_cell[inverse]
-
-
-def _evaluate(
-    query: np.ndarray,
-    n_scored: int,
-    match: np.ndarray,
-    T_qm: np.ndarray,
-    threshold: float,
-    settled: bool,
-) -> Verification:
-    """Fitness (over ``query[:n_scored]``), RMSE and covariance (over all inliers)."""
-    match_in_query = match @ T_qm[:3, :3].T + T_qm[:3, 3]
-    distances, nearest = cKDTree(match_in_query).query(query, distance_upper_bound=threshold)
-    inlier = np.isfinite(distances)
-    n_in = int(inlier.sum())
-    fitness = float(inlier[:n_scored].mean())
-    if n_in < _MIN_POINTS:
-        return _failure(T_qm, n_query=n_scored, fitness=fitness, n_inliers=n_in)
-    q, p = query[inlier], match_in_query[nearest[inlier]]
-    residuals = q - p
-    rmse = float(np.sqrt(np.mean(np.einsum("ij,ij->i", residuals, residuals))))
-    # Per-coordinate residual variance, with 6 degrees of freedom used by the fit.
-    sigma2 = float(np.sum(residuals**2) / max(3 * n_in - 6, 1))
-    covariance = _covariance(p, sigma2)
-    ok = covariance is not None
-    return Verification(
-        T_query_match=T_qm,
-        fitness=float(fitness),
-        rmse=rmse,
-        covariance=covariance if ok else np.full((6, 6), np.nan),
-        converged=bool(settled and ok),
-        n_query_points=n_scored,
-        n_inliers=n_in,
-    )
-
-
-def _covariance(p: np.ndarray, sigma2: float) -> np.ndarray | None:
-    """sigma^2 (sum J^T J)^-1 with J = [I, -hat(p)] for each aligned match point p."""
-    n = len(p)
-    # sum J^T J = [[n I, -sum hat(p)], [sum hat(p), -sum hat(p)^2]], in closed form
-    s = p.sum(axis=0)
-    hat_s = _hat(s)
-    second = (p.T @ p)  # sum p p^T
-    minus_hat2 = np.trace(second) * np.eye(3) - second  # -sum hat(p)^2
-    H = np.block([[n * np.eye(3), -hat_s], [hat_s, minus_hat2]])
-    try:
-        L = np.linalg.cholesky(H)
-    except np.linalg.LinAlgError:
-        return None
-    L_inv = np.linalg.inv(L)
-    covariance = sigma2 * (L_inv.T @ L_inv)
-    covariance = 0.5 * (covariance + covariance.T)
-    return covariance if np.all(np.isfinite(covariance)) else None
-
-
-def _hat(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def _angle(T: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
 
@@ -349,28 +293,13 @@ def _rigid(T: np.ndarray) -> np.ndarray:
     return rigid
 
 
-def _clean(points: np.ndarray) -> np.ndarray:
-    """(N, 3) float64 C-contiguous points within :data:`MAX_POINT_RANGE_M` (what the KISS-ICP bindings
-    need: far beyond it, voxel and grid indices overflow)."""
-    points = np.asarray(points, dtype=np.float64)
-    if points.size == 0:
-        return np.empty((0, 3))
-    if points.ndim != 2 or points.shape[1] < 3:
-        raise ValueError(f"points must have shape (N, 3), got {points.shape}")
-    points = points[:, :3]
-    # NaN and inf compare False: dropped too
-    return np.ascontiguousarray(points[np.all(np.abs(points) <= MAX_POINT_RANGE_M, axis=1)])
-
-
-def _failure(
-    T_qm: np.ndarray, *, n_query: int, fitness: float = 0.0, n_inliers: int = 0
-) -> Verification:
+def _failure(T_qm: np.ndarray, *, n_query: int) -> Verification:
     return Verification(
         T_query_match=np.array(T_qm, dtype=np.float64),
-        fitness=float(fitness),
+        fitness=0.0,
         rmse=float("inf"),
         covariance=np.full((6, 6), np.nan),
         converged=False,
         n_query_points=n_query,
-        n_inliers=n_inliers,
+        n_inliers=0,
     )

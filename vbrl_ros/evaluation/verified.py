@@ -26,7 +26,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vbrl_ros.detection.detector import closure_rejection, to_sensor_frames
-from vbrl_ros.detection.registration import verify_loop
+from vbrl_ros.detection.registration import QueryVerifier
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.evaluation.metrics import RetrievalMetrics
 from vbrl_ros.features.parallel import bounded_map, default_workers
@@ -66,20 +66,27 @@ class KeyframeClouds:
 
 
 _worker: tuple[KeyframeClouds, KeyframeClouds, DetectorSettings] | None = None
+# The last query's verifier: tasks come query by query, so a worker often gets several
+# candidates of one query in a row and prepares the query once for them.
+_last_query: tuple[int, QueryVerifier] | None = None
 
 
 def _init_worker(queries: KeyframeClouds, database: KeyframeClouds | None, settings: DetectorSettings) -> None:
-    global _worker
+    global _worker, _last_query
     # the rule without its fitness threshold: fitness is swept afterwards
     _worker = (queries, database or queries, DetectorSettings(**{**settings.__dict__, "min_fitness": 0.0}))
+    _last_query = None
 
 
 def _verify(task: tuple[int, int]) -> tuple[float, str | None, np.ndarray]:
+    global _last_query
     assert _worker is not None
     queries, database, settings = _worker
     query, match = task
-    check = verify_loop(queries.clouds[query], database.clouds[match],
-                        voxel_size=settings.verification_voxel, max_threads=1)
+    if _last_query is None or _last_query[0] != query:
+        _last_query = (query, QueryVerifier(queries.clouds[query], voxel_size=settings.verification_voxel,
+                                            max_threads=1))
+    check = _last_query[1].verify(database.clouds[match])
     T, _ = to_sensor_frames(check, queries.frames[query], database.frames[match])
     return check.fitness, closure_rejection(check, T, settings), T
 
