@@ -42,11 +42,11 @@ from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
 from vbrl_ros.model.builtin import load_default_model
 from vbrl_ros.model.model_file import load_model
 from vbrl_ros.ros.messages import closures_message, lio_sam_message
+from vbrl_ros.ros.node_stats import NodeStats
 from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, pose_matrix
-from vbrl_ros.ros.outputs import NodeStats, diagnostics_status, keyframe_markers
+from vbrl_ros.ros.outputs import diagnostics_status, keyframe_markers
 from vbrl_ros.ros.settings import DESCRIPTIONS, NodeSettings, unknown_parameters
 from vbrl_ros.ros.startup import rcl_error_line
-
 
 #: The parameters that name a topic (odom_topic may be empty: no odometry).
 TOPIC_PARAMETERS = ("cloud_topic", "odom_topic", "loop_closure_topic", "lio_sam_topic", "markers_topic")
@@ -71,7 +71,10 @@ class VbrlNode(Node):
         self.session = session
         # compile (or load from cache) the featurizer kernel now, not on the first keyframe
         self.detector.featurizer.describe(np.zeros((1, 3)))
-        self.stats = NodeStats()
+        self.stats = NodeStats()  # thread-safe itself
+        # guards the database, the detector (it appends to the database), the loop edges
+        # and the keyframe count since the last save: the worker writes them, the
+        # diagnostics timer and the services read or reset them
         self._db_lock = threading.Lock()
         self._mailbox = threading.Condition()
         self._pending: tuple[np.ndarray, float, np.ndarray | None, float] | None = None
@@ -163,11 +166,11 @@ class VbrlNode(Node):
     # -- callbacks (executor thread): cheap ------------------------------------
 
     def _on_odom(self, msg: Odometry) -> None:
-        self.stats.odometry += 1
+        self.stats.count("odometry")
         try:
             pose = pose_matrix(msg)
         except OdometryError as error:
-            self.stats.bad_odometry += 1
+            self.stats.count("bad_odometry")
             self.get_logger().warning(f"odometry skipped: {error}", throttle_duration_sec=5.0)
             return
         self._spacing.moved_to(pose)
@@ -177,7 +180,7 @@ class VbrlNode(Node):
         self.stats.received(now)
         stamp = stamp_seconds(msg.header.stamp)
         if not self._spacing.is_keyframe(stamp):
-            self.stats.between_keyframes += 1
+            self.stats.count("between_keyframes")
             return
         # Decode here, not in the worker: every bad message is then counted as
         # what it is (instead of vanishing as a "drop" from the mailbox) and
@@ -185,17 +188,17 @@ class VbrlNode(Node):
         try:
             points, _ = read_xyz_intensity(msg)
         except PointCloud2Error as error:
-            self.stats.malformed += 1
+            self.stats.count("malformed")
             self.get_logger().warning(f"malformed PointCloud2 skipped: {error}", throttle_duration_sec=5.0)
             return
         if len(points) == 0:
-            self.stats.empty += 1
+            self.stats.count("empty")
             self.get_logger().warning("PointCloud2 without finite points skipped", throttle_duration_sec=5.0)
             return
         self._spacing.mark(stamp)
         with self._mailbox:
             if self._pending is not None:
-                self.stats.dropped += 1  # the worker is behind: keep the newest keyframe only
+                self.stats.count("dropped")  # the worker is behind: keep the newest keyframe only
             self._pending = (points, stamp, self._spacing.latest_pose, now)
             self._mailbox.notify()
 
@@ -213,7 +216,7 @@ class VbrlNode(Node):
             try:
                 self._process(points, stamp, pose, arrived)
             except Exception as error:  # never let one scan kill the node
-                self.stats.errors += 1
+                self.stats.count("errors")
                 self.get_logger().error(f"keyframe skipped after an unexpected error: {error!r}")
 
     def _process(self, points: np.ndarray, stamp: float, pose: np.ndarray | None, arrived: float) -> None:
@@ -221,19 +224,20 @@ class VbrlNode(Node):
             gravity = (gravity_rotation(pose) if self.settings.level_from_odometry and pose is not None
                        else None)
             result = self.detector.process_keyframe(points, stamp, pose, gravity)
-        self.stats.keyframe(1e3 * (time.monotonic() - arrived), result)
-        for closure in result.closures:
-            self._edges.append((closure.query_id, closure.match_id))
+            self._edges.extend((closure.query_id, closure.match_id) for closure in result.closures)
+            self._keyframes_since_save += 1
+            save_due = bool(self.settings.save_every) and self._keyframes_since_save >= self.settings.save_every
+        self.stats.keyframe(1e3 * (time.monotonic() - arrived), len(result.closures),
+                            result.rejected_by_verification)
         if result.closures:
             self.closure_pub.publish(closures_message(result.closures))
             for closure in result.closures:
                 self.lio_sam_pub.publish(lio_sam_message(closure))
-        self._keyframes_since_save += 1
-        if self.settings.save_every and self._keyframes_since_save >= self.settings.save_every:
+        if save_due:
             try:
                 self.save_database()
             except OSError as error:  # e.g. a full disk: the keyframe is kept, the save tried again
-                self.stats.failed_saves += 1
+                self.stats.count("failed_saves")
                 self.get_logger().error(f"database not saved: {error}", throttle_duration_sec=5.0)
 
     # -- persistence ----------------------------------------------------------
@@ -251,7 +255,7 @@ class VbrlNode(Node):
             response.message = self.save_database()
             response.success = bool(self.settings.database_path)
         except OSError as error:
-            self.stats.failed_saves += 1
+            self.stats.count("failed_saves")
             response.success, response.message = False, f"save failed: {error}"
         return response
 
@@ -264,11 +268,12 @@ class VbrlNode(Node):
         return response
 
     def _publish_status(self) -> None:
-        with self._db_lock:
+        with self._db_lock:  # copies: the markers are built without holding up the worker
             size = len(self.database)
-            markers = keyframe_markers(self.database, self._edges, self.settings.map_frame,
-                                       self.get_clock().now().to_msg())
-        status = diagnostics_status(self.stats, size, self.session)
+            poses, ids = self.database.poses, self.database.keyframe_ids
+            edges = np.array(self._edges, dtype=np.int64).reshape(-1, 2)
+        markers = keyframe_markers(poses, ids, edges, self.settings.map_frame, self.get_clock().now().to_msg())
+        status = diagnostics_status(self.stats.snapshot(), size, self.session)
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status = [status]
