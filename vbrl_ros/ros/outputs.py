@@ -13,14 +13,18 @@ from vbrl_ros.ros.node_stats import StatsSnapshot
 
 def diagnostics_status(stats: StatsSnapshot, database_size: int, session: int) -> DiagnosticStatus:
     p50, p90, p99 = stats.latency_ms
+    r50, r90, r99 = stats.retrieval_latency_ms
     values = {
         "input_rate_hz": f"{stats.input_rate_hz:.2f}",
         "scans_received": stats.scans,
+        "scans_lost": stats.lost,
         "scans_between_keyframes": stats.between_keyframes,
         "keyframes_processed": stats.keyframes,
         "loop_closures": stats.closures,
         "rejected_by_verification": stats.rejected_by_verification,
         "dropped_scans": stats.dropped,
+        "unverified_keyframes": stats.unverified,
+        "verification_errors": stats.verification_errors,
         "malformed_scans": stats.malformed,
         "empty_scans": stats.empty,
         "processing_errors": stats.errors,
@@ -30,6 +34,9 @@ def diagnostics_status(stats: StatsSnapshot, database_size: int, session: int) -
         "latency_p50_ms": f"{p50:.1f}",
         "latency_p90_ms": f"{p90:.1f}",
         "latency_p99_ms": f"{p99:.1f}",
+        "retrieval_latency_p50_ms": f"{r50:.1f}",
+        "retrieval_latency_p90_ms": f"{r90:.1f}",
+        "retrieval_latency_p99_ms": f"{r99:.1f}",
         "database_size": database_size,
         "session_id": session,
     }
@@ -38,7 +45,7 @@ def diagnostics_status(stats: StatsSnapshot, database_size: int, session: int) -
         name="vbrl_node: loop closure",
         hardware_id="vbrl",
         level=DiagnosticStatus.WARN if problems else DiagnosticStatus.OK,
-        message="dropped or skipped scans or odometry, or failed saves (see values)" if problems else "ok",
+        message="lost, dropped or skipped scans or odometry, or failed saves (see values)" if problems else "ok",
     )
     status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
     return status
