@@ -48,7 +48,6 @@ from vbrl_ros.detection.detector import (
 from vbrl_ros.detection.settings import SettingsError
 from vbrl_ros.detection.verifier_process import VerifierError, VerifierProcess
 from vbrl_ros.grids.ground_frame import gravity_rotation
-from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.io.atomic import check_writable, remove_stale_temporaries
 from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
 from vbrl_ros.model.builtin import load_default_model
@@ -59,7 +58,12 @@ from vbrl_ros.ros.messages import closures_message, lio_sam_message
 from vbrl_ros.ros.node_stats import NodeStats
 from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, pose_matrix
 from vbrl_ros.ros.outputs import diagnostics_status, keyframe_markers
-from vbrl_ros.ros.settings import DESCRIPTIONS, NodeSettings, unknown_parameters
+from vbrl_ros.ros.settings import (
+    DESCRIPTIONS,
+    NodeSettings,
+    index_parameters,
+    unknown_parameters,
+)
 from vbrl_ros.ros.startup import rcl_error_line
 
 #: The parameters that name a topic (odom_topic may be empty: no odometry).
@@ -185,9 +189,13 @@ class VbrlNode(Node):
                 self.get_logger().info(f"removed {len(removed)} temporary file(s) that interrupted saves of "
                                        f"{path} left")
         if path and Path(path).exists():
-            # a saved database keeps its own storage type (and refuses another prune)
+            # a saved database keeps its own storage type and search (and refuses another prune)
             return KeyframeDatabase.load(path, scorer, model_id)
-        return KeyframeDatabase(scorer, model_id, IndexParameters(storage=self.settings.descriptor_storage))
+        try:
+            return KeyframeDatabase(scorer, model_id, index_parameters(self.settings))
+        except ValueError as error:  # a bound that depends on the model's descriptor
+            name = str(error).split()[0]
+            raise SettingsError(f"parameter 'index_{name}' for this model: {error}") from None
 
     # -- callbacks (executor thread): cheap ------------------------------------
 
