@@ -1,4 +1,4 @@
-"""``vbrl bench --node`` end to end on a tiny drive (a functional check, not a timing), and its /proc sampler."""
+"""``vbrl bench --node`` end to end on a short drive (a functional check, not a timing), and its /proc sampler."""
 
 from __future__ import annotations
 
@@ -29,16 +29,17 @@ def test_bench_node_replays_a_tiny_drive_and_prints_its_table(tmp_path):
     pytest.importorskip("rclpy")
     out = tmp_path / "bench.json"
     result = subprocess.run(
-        [sys.executable, "-m", "vbrl_ros.tools.cli", "bench", "--node", "--rates", "4", "--scans", "30",
-         "--beams", "16", "--columns", "256", "--out-dir", str(tmp_path), "--json", str(out), "--quiet"],
+        [sys.executable, "-m", "vbrl_ros.tools.cli", "bench", "--node", "--rates", "1", "--scans", "30",
+         "--out-dir", str(tmp_path), "--json", str(out), "--quiet"],
         capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "clouds sent/received" in result.stdout and "latency p50/p90/p99 ms" in result.stdout
     row = json.loads(out.read_text())["rates"][0]
-    assert row["rate"] == 4 and row["clouds_sent"] == 30
-    assert 0 < row["clouds_received"] + row["clouds_lost"] <= 30
+    assert row["rate"] == 1 and row["clouds_sent"] == 30
+    # 64-beam clouds (1.5 MB) published best effort: Fast DDS's default transports lost nearly all
+    assert row["clouds_received"] == 30 and row["clouds_lost"] == 0
     # every cloud received is accounted for
     assert (row["keyframes_processed"] + row["keyframes_dropped"] + row["clouds_between_keyframes"]
             == row["clouds_received"])
     assert row["keyframes_processed"] > 0 and row["node_cpu_percent"] > 0 and row["peak_rss_mb"] > 100
-    assert f"4x    30/{row['clouds_received']}" in result.stdout
+    assert "1x    30/30" in result.stdout

@@ -120,7 +120,10 @@ class VbrlNode(Node):
         self.create_service(Trigger, "~/clear_database", self._on_clear)
         self.create_timer(s.diagnostics_period, self._publish_status)
         if self._verifier is not None:
-            self._verifier.start()  # before any keyframe: a second or two
+            try:
+                self._verifier.start()  # before any keyframe: a second or two
+            except VerifierError as error:  # tried again at the first keyframe with candidates
+                self.get_logger().error(f"verification process not started: {error}")
         self._worker = threading.Thread(target=self._work, name="vbrl-worker", daemon=True)
         self._worker.start()
         self._verification = threading.Thread(target=self._verify, name="vbrl-verification", daemon=True)

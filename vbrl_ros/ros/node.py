@@ -31,6 +31,9 @@ def run(argv: list[str]) -> int:
         print(f"vbrl_node: cannot start: {problem}", file=sys.stderr)
         return 2
 
+    from vbrl_ros.ros.transport import use_large_data_profile
+
+    use_large_data_profile()  # before rclpy: whole clouds through shared memory
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
