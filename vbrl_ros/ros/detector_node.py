@@ -3,13 +3,13 @@
 A thin adapter around :class:`~vbrl_ros.detection.detector.LoopClosureDetector`,
 in three threads and a process. The subscription callback (executor thread)
 reads a serialized cloud's stamp, decides whether it is a keyframe and only
-then decodes it into a one-slot mailbox; the worker thread describes,
+then decodes it into a short queue; the worker thread describes,
 searches and stores the keyframe; a child process
 (:class:`~vbrl_ros.detection.verifier_process.VerifierProcess`) verifies its
-candidates meanwhile, and the verification thread publishes what passes. Each
-hand-over keeps only the newest item: a keyframe replaced before the worker
-took it is counted as dropped, one whose candidates were replaced before
-verification as unverified, so no queue grows. Clouds DDS never delivered are
+candidates meanwhile, and the verification thread publishes what passes. No
+hand-over grows: a keyframe pushed out of the worker's queue (5 long) is
+counted as dropped, one whose candidates a newer keyframe's replaced before
+verification (a single place) as unverified. Clouds DDS never delivered are
 counted as lost. A bad message is logged, counted and skipped; a failed save is
 logged and counted, and tried again at the next keyframe.
 
@@ -53,7 +53,7 @@ from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
 from vbrl_ros.model.builtin import load_default_model
 from vbrl_ros.model.model_file import load_model
 from vbrl_ros.ros.cloud_intake import SequenceGaps, cloud_header
-from vbrl_ros.ros.latest_slot import LatestSlot
+from vbrl_ros.ros.newest_queue import NewestQueue
 from vbrl_ros.ros.messages import closures_message, lio_sam_message
 from vbrl_ros.ros.node_stats import NodeStats
 from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, pose_matrix
@@ -68,6 +68,9 @@ from vbrl_ros.ros.startup import rcl_error_line
 
 #: The parameters that name a topic (odom_topic may be empty: no odometry).
 TOPIC_PARAMETERS = ("cloud_topic", "odom_topic", "loop_closure_topic", "lio_sam_topic", "markers_topic")
+#: Keyframes waiting for the worker before the oldest is dropped: half a second at 10 keyframes/s,
+#: what a save of ~800 keyframes (~55 MB) holds the worker for; more would only add latency.
+KEYFRAME_QUEUE = 5
 #: Sensor-data QoS (best effort), with a queue of a second of a 10 Hz sensor instead of 5 messages:
 #: a cloud waiting there costs memory only until the callback takes it, a cloud pushed out is lost.
 CLOUD_QOS = QoSProfile(history=qos_profile_sensor_data.history, depth=10,
@@ -100,8 +103,9 @@ class VbrlNode(Node):
         # diagnostics timer and the services read or reset them
         self._db_lock = threading.Lock()
         # (points, stamp, pose, arrival) for the worker; (retrieval, arrival) for verification
-        self._keyframes: LatestSlot[tuple[np.ndarray, float, np.ndarray | None, float]] = LatestSlot()
-        self._retrievals: LatestSlot[tuple[Retrieval, float]] = LatestSlot()
+        self._keyframes: NewestQueue[tuple[np.ndarray, float, np.ndarray | None, float]] = \
+            NewestQueue(KEYFRAME_QUEUE)
+        self._retrievals: NewestQueue[tuple[Retrieval, float]] = NewestQueue(1)
         self._verifier = VerifierProcess(self.detector.settings) if s.detector.verify else None
         self._spacing = KeyframeSpacing(s.keyframe_distance, s.keyframe_interval)
         self._gaps = SequenceGaps()
@@ -243,7 +247,7 @@ class VbrlNode(Node):
             return
         self._spacing.mark(stamp)
         if self._keyframes.put((points, stamp, self._spacing.latest_pose, now)):
-            self.stats.count("dropped")  # the worker is behind: keep the newest keyframe only
+            self.stats.count("dropped")  # the worker is far behind: the oldest waiting one goes
 
     # -- worker thread: describe, search, store ----------------------------------
 
