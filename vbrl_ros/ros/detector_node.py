@@ -53,8 +53,8 @@ from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
 from vbrl_ros.model.builtin import load_default_model
 from vbrl_ros.model.model_file import load_model
 from vbrl_ros.ros.cloud_intake import SequenceGaps, cloud_header
-from vbrl_ros.ros.newest_queue import NewestQueue
 from vbrl_ros.ros.messages import closures_message, lio_sam_message
+from vbrl_ros.ros.newest_queue import NewestQueue
 from vbrl_ros.ros.node_stats import NodeStats
 from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, pose_matrix
 from vbrl_ros.ros.outputs import diagnostics_status, keyframe_markers
