@@ -19,12 +19,15 @@ import multiprocessing
 import signal
 import traceback
 from multiprocessing.connection import Connection
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from vbrl_ros.detection.database import Candidate
-from vbrl_ros.detection.detector import KeyframeResult, Retrieval, verify_candidates
 from vbrl_ros.detection.settings import DetectorSettings
+
+if TYPE_CHECKING:
+    from vbrl_ros.detection.detector import KeyframeResult, Retrieval
+
+# The child imports this module before it can run serve(): nothing heavy here (numpy, KISS-ICP and
+# the detector come inside serve), so that it ignores Ctrl-C within milliseconds of its start.
 
 #: Seconds a child may take to finish its registration and exit before it is killed.
 STOP_TIMEOUT_S = 10.0
@@ -63,17 +66,18 @@ class VerifierProcess:
         parent, child = self._context.Pipe()
         self._process = self._context.Process(target=serve, args=(child, self.settings),
                                               name="vbrl-verifier", daemon=True)
-        # Ctrl-C reaches the whole process group: the child, blocking SIGINT from birth (the mask
-        # survives the exec), neither dies mid-start nor prints a traceback; the parent stops it
-        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-        try:
-            self._process.start()
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+        self._process.start()
         child.close()  # the child's copy: once the child exits, a read here sees the end
         self._connection = parent
         self.starts += 1
-        self._receive()  # ("ok", None) once warm
+        try:
+            self._receive()  # ("ok", None) once warm
+        except BaseException:
+            # e.g. Ctrl-C while the child starts: end it now, before it reads from a closed pipe
+            # and prints a traceback of its own
+            self._process.kill()
+            self.stop()
+            raise
 
     def _receive(self):
         assert self._connection is not None
@@ -117,6 +121,8 @@ class VerifierProcess:
 def serve(connection: Connection, settings: DetectorSettings) -> None:
     """The child's loop: a Retrieval in, ("ok", KeyframeResult) or ("error", one line) out; None ends it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group
+    from vbrl_ros.detection.detector import verify_candidates
+
     warm_up(settings)
     connection.send(("ok", None))
     while True:
@@ -135,6 +141,11 @@ def serve(connection: Connection, settings: DetectorSettings) -> None:
 
 def warm_up(settings: DetectorSettings) -> None:
     """One verification of a synthetic pair: loads and compiles what the first real one needs."""
+    import numpy as np
+
+    from vbrl_ros.detection.database import Candidate
+    from vbrl_ros.detection.detector import Retrieval, verify_candidates
+
     rng = np.random.default_rng(0)
     walls = rng.uniform(-20, 20, (2000, 3)) * [1, 1, 0.1] + [0, 0, 1]
     cloud = np.round(walls / 2) * 2 + rng.normal(0, 0.05, walls.shape)

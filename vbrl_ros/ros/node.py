@@ -7,6 +7,7 @@ one later, not with a KeyboardInterrupt traceback from an import.
 
 from __future__ import annotations
 
+import os
 import sys
 
 from vbrl_ros.ros.startup import params_file_problem, rcl_error_line, usage
@@ -16,8 +17,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return run(list(sys.argv if argv is None else argv))
     except KeyboardInterrupt:  # before rclpy's own signal handling is in place
-        print("vbrl_node: interrupted", file=sys.stderr)
-        return 0
+        print("vbrl_node: interrupted", file=sys.stderr, flush=True)
+        # CPython records a KeyboardInterrupt raised inside exec() (dataclasses run one per
+        # generated method while a module loads) as unhandled even once caught, and would end
+        # the process by SIGINT (exit -2); nothing runs yet, so leave directly
+        sys.stdout.flush()
+        os._exit(0)
 
 
 def run(argv: list[str]) -> int:
@@ -65,7 +70,10 @@ def run(argv: list[str]) -> int:
         if node is not None:
             code = code if node.shutdown() else 1
             node.destroy_node()
-        rclpy.try_shutdown()
+        try:
+            rclpy.try_shutdown()
+        except RuntimeError:  # rclpy's signal handler shut the context down meanwhile
+            pass
     return code
 
 
