@@ -91,6 +91,8 @@ def model_with_text_weights(path: Path) -> Path:
                           "empty string)"),
     ("database_path:={tmp}/afile/keyframes.npz", "parameter 'database_path': cannot write "
                                                  "{tmp}/afile/keyframes.npz (a file where a folder should be: {tmp}/afile)"),
+    ("index_refine_dim:=99999", "parameter 'index_refine_dim' for this model: refine_dim must be an integer in "
+                                "[0, 640], got 99999"),
     ("model_path:=/nonexistent/model.npz", "model file /nonexistent/model.npz does not exist"),
     ("model_path:={tmp}", "model file {tmp} is a directory"),
     ("model_path:={tmp}/text_weights.npz", "{tmp}/text_weights.npz has a bad 'W': it holds a single <U1 value, "

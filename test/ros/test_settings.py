@@ -47,6 +47,9 @@ def test_unknown_names_come_with_the_closest_known_one():
         ("diagnostics_period", float("nan"), "diagnostics_period"),
         ("verification_voxel", 1e-9, r"'verification_voxel' must be in \[0.05, 10.0\] m, got 1e-09"),
         ("no_such_parameter", 1, "no_such_parameter"),
+        ("index_candidates", -2, r"'index_candidates' must be -1 \(the default\) or >= 0, got -2"),
+        ("index_refine_dim", 1.5, "index_refine_dim"),
+        ("index_bound_shifts", -5, "index_bound_shifts"),
     ],
 )
 def test_bad_values_name_the_parameter(name, value, message):
@@ -64,3 +67,13 @@ def test_detector_parameters_are_the_detector_settings():
     assert settings.odom_topic == "/odom"
     assert NodeSettings().detector == DetectorSettings()
     assert "session" not in NodeSettings.defaults()  # the node derives it from session_id
+
+
+def test_index_parameters_reach_the_index_and_minus_one_is_the_model_s_default():
+    from vbrl_ros.ros.settings import index_parameters
+
+    given = index_parameters(NodeSettings.from_values({"index_candidates": 64, "index_refine_dim": 0,
+                                                       "descriptor_storage": "float16"}))
+    assert (given.candidates, given.refine_dim, given.bound_shifts, given.storage) == (64, 0, None, "float16")
+    default = index_parameters(NodeSettings())
+    assert (default.candidates, default.refine_dim, default.bound_shifts) == (None, None, None)

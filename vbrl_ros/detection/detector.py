@@ -17,7 +17,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vbrl_ros.detection.database import Candidate, KeyframeDatabase
-from vbrl_ros.detection.registration import Verification, downsample_for_storage, verify_loop
+from vbrl_ros.detection.registration import (
+    QueryVerifier,
+    Verification,
+    downsample_for_storage,
+)
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.index.translation_search import view_offsets
 from vbrl_ros.model.model_file import VBRLModel
@@ -47,13 +51,35 @@ class KeyframeResult:
     candidates_scored: int
     rejected_by_verification: int
     timings_ms: dict[str, float] = field(default_factory=dict)
+    rejections: dict[str, int] = field(default_factory=dict)  # reason -> candidates rejected for it
+
+
+@dataclass
+class Retrieval:
+    """A keyframe described, searched and stored, with everything its candidates' verification needs
+    (copies: the database may change while they are verified elsewhere)."""
+
+    keyframe_id: int
+    stamp: float
+    session: str
+    candidates: list[Candidate]  # within the distance threshold, best (lowest distance) first
+    candidates_scored: int
+    frame: np.ndarray  # 4x4 sensor -> grid frame of the query
+    cloud: np.ndarray | None = None  # the query's verification cloud, in its grid frame
+    candidate_clouds: list[np.ndarray] = field(default_factory=list)
+    candidate_frames: list[np.ndarray] = field(default_factory=list)
+    timings_ms: dict[str, float] = field(default_factory=dict)
 
 
 class LoopClosureDetector:
-    """Featurize a keyframe, find it in the database, verify, then remember it.
+    """Featurize a keyframe, find it in the database, remember it, verify its candidates.
 
     ``distance_threshold``: the settings' one; where they say 0, none with verification (every one
     of the ``top_k`` is verified) and the model's own without.
+
+    :meth:`process_keyframe` does it all in one call; the node calls :meth:`retrieve` and
+    verifies the :class:`Retrieval` with :func:`verify_candidates` in another process, while
+    the next keyframe is described and searched.
     """
 
     def __init__(self, model: VBRLModel, database: KeyframeDatabase, settings: DetectorSettings) -> None:
@@ -75,54 +101,75 @@ class LoopClosureDetector:
     ) -> KeyframeResult:
         """``pose``: T_world_lidar (stored); ``gravity``: 3x3 sensor -> gravity-aligned rotation
         (odometry's roll and pitch) to level by instead of the scan's own ground."""
+        return verify_candidates(self.retrieve(points, stamp, pose, gravity), self.settings)
+
+    def retrieve(
+        self, points: np.ndarray, stamp: float, pose: np.ndarray | None = None,
+        gravity: np.ndarray | None = None,
+    ) -> Retrieval:
+        """Describe the keyframe, find its candidates, store it (arguments as :meth:`process_keyframe`)."""
         cfg = self.settings
-        timings: dict[str, float] = {}
         t0 = time.perf_counter()
         frame = self.featurizer.frame(points, gravity)
         views = self.scorer.compact(self.model.standardize(
             self.featurizer.describe_views(points, self.view_offsets, frame)))
         t1 = time.perf_counter()
-        candidates = self.database.query_views(
+        found = self.database.query_views(
             views, self.view_offsets, top_k=cfg.top_k, session=cfg.session, stamp=stamp,
             exclude_recent_s=cfg.exclude_recent_s,
         )
+        # sorted by distance: the first beyond the threshold ends the list
+        candidates = [c for c in found if c.distance <= self.distance_threshold]
         t2 = time.perf_counter()
         cloud = verification_cloud(points, frame.matrix, cfg.verification_voxel) if cfg.verify else None
-        closures: list[LoopClosure] = []
-        rejected = 0
-        for candidate in candidates:
-            if candidate.distance > self.distance_threshold or len(closures) >= cfg.max_closures:
-                break  # sorted by distance: nothing further can pass
-            closure = LoopClosure(
-                query_id=self.database.next_keyframe_id, match_id=candidate.keyframe_id,
-                query_stamp=stamp, match_stamp=candidate.stamp, query_session=cfg.session,
-                match_session=candidate.session, distance=float(candidate.distance),
-                yaw=float(candidate.yaw),
-            )
-            if cfg.verify:
-                check = self._verify(cloud, candidate)
-                T, covariance = to_sensor_frames(check, frame.matrix, self.database.frame(candidate.index))
-                if closure_rejection(check, T, cfg) is not None:
-                    rejected += 1
-                    continue
-                closure = LoopClosure(
-                    **{**closure.__dict__, "T_query_match": T, "fitness": check.fitness,
-                       "covariance": covariance}
-                )
-            closures.append(closure)
-        t3 = time.perf_counter()
         keyframe_id = self.database.add(views[0], stamp, cfg.session, pose=pose, cloud=cloud,
                                         frame=frame.matrix)
-        t4 = time.perf_counter()
-        timings.update(describe=1e3 * (t1 - t0), query=1e3 * (t2 - t1),
-                       verify=1e3 * (t3 - t2), insert=1e3 * (t4 - t3))
-        return KeyframeResult(keyframe_id, closures, len(candidates), rejected, timings)
+        t3 = time.perf_counter()
+        retrieval = Retrieval(  # rows of older keyframes stay where they were after an add
+            keyframe_id=keyframe_id, stamp=stamp, session=cfg.session,
+            candidates=candidates, candidates_scored=len(found), frame=frame.matrix, cloud=cloud,
+            candidate_clouds=[self.database.cloud(c.index) for c in candidates] if cfg.verify else [],
+            candidate_frames=[self.database.frame(c.index) for c in candidates],
+        )
+        retrieval.timings_ms.update(describe=1e3 * (t1 - t0), query=1e3 * (t2 - t1), insert=1e3 * (t3 - t2))
+        return retrieval
 
-    def _verify(self, cloud: np.ndarray, candidate: Candidate) -> Verification:
-        # no initial guess: the verification searches every heading itself, as the
-        # recogniser's yaw is often a symmetric place's other heading
-        return verify_loop(cloud, self.database.cloud(candidate.index),
-                           voxel_size=self.settings.verification_voxel)
+
+def verify_candidates(retrieval: Retrieval, settings: DetectorSettings) -> KeyframeResult:
+    """The retrieval's loop closures: its candidates best first, each verified when ``settings``
+    say so, until ``max_closures`` pass. Needs no database: it runs where the clouds are sent."""
+    start = time.perf_counter()
+    closures: list[LoopClosure] = []
+    rejections: dict[str, int] = {}
+    # the query's thinning, ground, KD-tree and heading image are prepared once for all candidates
+    verifier = QueryVerifier(retrieval.cloud, voxel_size=settings.verification_voxel) if (
+        settings.verify and retrieval.candidates) else None
+    for k, candidate in enumerate(retrieval.candidates):
+        if len(closures) >= settings.max_closures:
+            break
+        closure = LoopClosure(
+            query_id=retrieval.keyframe_id, match_id=candidate.keyframe_id,
+            query_stamp=retrieval.stamp, match_stamp=candidate.stamp, query_session=retrieval.session,
+            match_session=candidate.session, distance=float(candidate.distance),
+            yaw=float(candidate.yaw),
+        )
+        if settings.verify:
+            # no initial guess: the verification searches every heading itself, as the
+            # recogniser's yaw is often a symmetric place's other heading
+            check = verifier.verify(retrieval.candidate_clouds[k])
+            T, covariance = to_sensor_frames(check, retrieval.frame, retrieval.candidate_frames[k])
+            reason = closure_rejection(check, T, settings)
+            if reason is not None:
+                rejections[reason] = rejections.get(reason, 0) + 1
+                continue
+            closure = LoopClosure(
+                **{**closure.__dict__, "T_query_match": T, "fitness": check.fitness,
+                   "covariance": covariance}
+            )
+        closures.append(closure)
+    timings = {**retrieval.timings_ms, "verify": 1e3 * (time.perf_counter() - start)}
+    return KeyframeResult(retrieval.keyframe_id, closures, retrieval.candidates_scored,
+                          sum(rejections.values()), timings, rejections)
 
 
 def verification_cloud(points: np.ndarray, frame: np.ndarray, voxel: float) -> np.ndarray:

@@ -1,12 +1,17 @@
 """The online loop-closure detector as a ROS 2 node (:class:`VbrlNode`; ``vbrl_node`` runs it).
 
-A thin adapter around :class:`~vbrl_ros.detection.detector.LoopClosureDetector`:
-the subscription callback only decides whether a scan is a keyframe and
-drops it into a one-slot mailbox; a worker thread decodes, scores, verifies,
-inserts and publishes. When the worker falls behind, the newest keyframe
-replaces the waiting one and the replaced one is counted as dropped, so no
-queue grows without bound. A bad message is logged, counted and skipped; a
-failed save is logged and counted, and tried again at the next keyframe.
+A thin adapter around :class:`~vbrl_ros.detection.detector.LoopClosureDetector`,
+in three threads and a process. The subscription callback (executor thread)
+reads a serialized cloud's stamp, decides whether it is a keyframe and only
+then decodes it into a short queue; the worker thread describes,
+searches and stores the keyframe; a child process
+(:class:`~vbrl_ros.detection.verifier_process.VerifierProcess`) verifies its
+candidates meanwhile, and the verification thread publishes what passes. No
+hand-over grows: a keyframe pushed out of the worker's queue (5 long) is
+counted as dropped, one whose candidates a newer keyframe's replaced before
+verification (a single place) as unverified. Clouds DDS never delivered are
+counted as lost. A bad message is logged, counted and skipped; a failed save is
+logged and counted, and tried again at the next keyframe.
 
 Before anything is loaded, every topic parameter must be a name rclpy accepts and
 ``database_path`` must be writable: either stops the start with a line naming it.
@@ -26,30 +31,51 @@ from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from vbrl_ros.detection.database import KeyframeDatabase
-from vbrl_ros.detection.detector import LoopClosureDetector
+from vbrl_ros.detection.detector import (
+    KeyframeResult,
+    LoopClosureDetector,
+    Retrieval,
+    verify_candidates,
+)
 from vbrl_ros.detection.settings import SettingsError
+from vbrl_ros.detection.verifier_process import VerifierError, VerifierProcess
 from vbrl_ros.grids.ground_frame import gravity_rotation
-from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.io.atomic import check_writable, remove_stale_temporaries
 from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
 from vbrl_ros.model.builtin import load_default_model
 from vbrl_ros.model.model_file import load_model
+from vbrl_ros.ros.cloud_intake import SequenceGaps, cloud_header
 from vbrl_ros.ros.messages import closures_message, lio_sam_message
+from vbrl_ros.ros.newest_queue import NewestQueue
+from vbrl_ros.ros.node_stats import NodeStats
 from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, pose_matrix
-from vbrl_ros.ros.outputs import NodeStats, diagnostics_status, keyframe_markers
-from vbrl_ros.ros.settings import DESCRIPTIONS, NodeSettings, unknown_parameters
+from vbrl_ros.ros.outputs import diagnostics_status, keyframe_markers
+from vbrl_ros.ros.settings import (
+    DESCRIPTIONS,
+    NodeSettings,
+    index_parameters,
+    unknown_parameters,
+)
 from vbrl_ros.ros.startup import rcl_error_line
-
 
 #: The parameters that name a topic (odom_topic may be empty: no odometry).
 TOPIC_PARAMETERS = ("cloud_topic", "odom_topic", "loop_closure_topic", "lio_sam_topic", "markers_topic")
+#: Keyframes waiting for the worker before the oldest is dropped: half a second at 10 keyframes/s,
+#: what a save of ~800 keyframes (~55 MB) holds the worker for; more would only add latency.
+KEYFRAME_QUEUE = 5
+#: Sensor-data QoS (best effort), with a queue of a second of a 10 Hz sensor instead of 5 messages:
+#: a cloud waiting there costs memory only until the callback takes it, a cloud pushed out is lost.
+CLOUD_QOS = QoSProfile(history=qos_profile_sensor_data.history, depth=10,
+                       reliability=qos_profile_sensor_data.reliability,
+                       durability=qos_profile_sensor_data.durability)
 
 
 def stamp_seconds(stamp) -> float:
@@ -71,12 +97,18 @@ class VbrlNode(Node):
         self.session = session
         # compile (or load from cache) the featurizer kernel now, not on the first keyframe
         self.detector.featurizer.describe(np.zeros((1, 3)))
-        self.stats = NodeStats()
+        self.stats = NodeStats()  # thread-safe itself
+        # guards the database, the detector (it appends to the database), the loop edges
+        # and the keyframe count since the last save: the worker writes them, the
+        # diagnostics timer and the services read or reset them
         self._db_lock = threading.Lock()
-        self._mailbox = threading.Condition()
-        self._pending: tuple[np.ndarray, float, np.ndarray | None, float] | None = None
-        self._stopping = False
+        # (points, stamp, pose, arrival) for the worker; (retrieval, arrival) for verification
+        self._keyframes: NewestQueue[tuple[np.ndarray, float, np.ndarray | None, float]] = \
+            NewestQueue(KEYFRAME_QUEUE)
+        self._retrievals: NewestQueue[tuple[Retrieval, float]] = NewestQueue(1)
+        self._verifier = VerifierProcess(self.detector.settings) if s.detector.verify else None
         self._spacing = KeyframeSpacing(s.keyframe_distance, s.keyframe_interval)
+        self._gaps = SequenceGaps()
         self._edges: deque[tuple[int, int]] = deque(maxlen=10_000)
         self._keyframes_since_save = 0
 
@@ -84,14 +116,22 @@ class VbrlNode(Node):
         self.lio_sam_pub = self.create_publisher(Float64MultiArray, s.lio_sam_topic, 10)
         self.marker_pub = self.create_publisher(MarkerArray, s.markers_topic, 1)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(PointCloud2, s.cloud_topic, self._on_cloud, qos_profile_sensor_data)
+        # serialized: only a keyframe's cloud is deserialized (cloud_intake)
+        self.create_subscription(PointCloud2, s.cloud_topic, self._on_cloud, CLOUD_QOS, raw=True)
         if s.odom_topic:
             self.create_subscription(Odometry, s.odom_topic, self._on_odom, 50)
         self.create_service(Trigger, "~/save_database", self._on_save)
         self.create_service(Trigger, "~/clear_database", self._on_clear)
         self.create_timer(s.diagnostics_period, self._publish_status)
+        if self._verifier is not None:
+            try:
+                self._verifier.start()  # before any keyframe: a second or two
+            except VerifierError as error:  # tried again at the first keyframe with candidates
+                self.get_logger().error(f"verification process not started: {error}")
         self._worker = threading.Thread(target=self._work, name="vbrl-worker", daemon=True)
         self._worker.start()
+        self._verification = threading.Thread(target=self._verify, name="vbrl-verification", daemon=True)
+        self._verification.start()
         self.get_logger().info(
             f"listening on {s.cloud_topic}; session {session}; {len(self.database)} keyframes in "
             f"memory; distance threshold {self.detector.distance_threshold:.3f} (lower = more similar)"
@@ -156,85 +196,116 @@ class VbrlNode(Node):
                 self.get_logger().info(f"removed {len(removed)} temporary file(s) that interrupted saves of "
                                        f"{path} left")
         if path and Path(path).exists():
-            # a saved database keeps its own storage type (and refuses another prune)
+            # a saved database keeps its own storage type and search (and refuses another prune)
             return KeyframeDatabase.load(path, scorer, model_id)
-        return KeyframeDatabase(scorer, model_id, IndexParameters(storage=self.settings.descriptor_storage))
+        try:
+            return KeyframeDatabase(scorer, model_id, index_parameters(self.settings))
+        except ValueError as error:  # a bound that depends on the model's descriptor
+            name = str(error).split()[0]
+            raise SettingsError(f"parameter 'index_{name}' for this model: {error}") from None
 
     # -- callbacks (executor thread): cheap ------------------------------------
 
     def _on_odom(self, msg: Odometry) -> None:
-        self.stats.odometry += 1
+        self.stats.count("odometry")
         try:
             pose = pose_matrix(msg)
         except OdometryError as error:
-            self.stats.bad_odometry += 1
+            self.stats.count("bad_odometry")
             self.get_logger().warning(f"odometry skipped: {error}", throttle_duration_sec=5.0)
             return
         self._spacing.moved_to(pose)
 
-    def _on_cloud(self, msg: PointCloud2) -> None:
+    def _on_cloud(self, raw: bytes, info: dict) -> None:
         now = time.monotonic()
         self.stats.received(now)
-        stamp = stamp_seconds(msg.header.stamp)
+        try:
+            stamp, frame = cloud_header(raw)
+        except PointCloud2Error as error:
+            self.stats.count("malformed")
+            self.get_logger().warning(f"malformed PointCloud2 skipped: {error}", throttle_duration_sec=5.0)
+            return
+        lost = self._gaps.missing_before(frame, info.get("publication_sequence_number"))
+        if lost:
+            self.stats.count("lost", lost)
         if not self._spacing.is_keyframe(stamp):
-            self.stats.between_keyframes += 1
+            self.stats.count("between_keyframes")
             return
         # Decode here, not in the worker: every bad message is then counted as
         # what it is (instead of vanishing as a "drop" from the mailbox) and
-        # never takes a keyframe slot. Decoding is a few ms; scoring is not.
+        # never takes a keyframe slot. Decoding takes ~2 ms per 120k points; scoring far more.
         try:
+            msg = deserialize_message(raw, PointCloud2)
             points, _ = read_xyz_intensity(msg)
-        except PointCloud2Error as error:
-            self.stats.malformed += 1
+        except (PointCloud2Error, RuntimeError, TypeError) as error:  # rclpy's own failures included
+            self.stats.count("malformed")
             self.get_logger().warning(f"malformed PointCloud2 skipped: {error}", throttle_duration_sec=5.0)
             return
         if len(points) == 0:
-            self.stats.empty += 1
+            self.stats.count("empty")
             self.get_logger().warning("PointCloud2 without finite points skipped", throttle_duration_sec=5.0)
             return
         self._spacing.mark(stamp)
-        with self._mailbox:
-            if self._pending is not None:
-                self.stats.dropped += 1  # the worker is behind: keep the newest keyframe only
-            self._pending = (points, stamp, self._spacing.latest_pose, now)
-            self._mailbox.notify()
+        if self._keyframes.put((points, stamp, self._spacing.latest_pose, now)):
+            self.stats.count("dropped")  # the worker is far behind: the oldest waiting one goes
 
-    # -- worker thread: the real work ------------------------------------------
+    # -- worker thread: describe, search, store ----------------------------------
 
     def _work(self) -> None:
-        while True:
-            with self._mailbox:
-                while self._pending is None and not self._stopping:
-                    self._mailbox.wait()
-                if self._stopping:
-                    return
-                points, stamp, pose, arrived = self._pending
-                self._pending = None
+        while (keyframe := self._keyframes.take()) is not None:
             try:
-                self._process(points, stamp, pose, arrived)
+                self._process(*keyframe)
             except Exception as error:  # never let one scan kill the node
-                self.stats.errors += 1
+                self.stats.count("errors")
                 self.get_logger().error(f"keyframe skipped after an unexpected error: {error!r}")
 
     def _process(self, points: np.ndarray, stamp: float, pose: np.ndarray | None, arrived: float) -> None:
         with self._db_lock:
             gravity = (gravity_rotation(pose) if self.settings.level_from_odometry and pose is not None
                        else None)
-            result = self.detector.process_keyframe(points, stamp, pose, gravity)
-        self.stats.keyframe(1e3 * (time.monotonic() - arrived), result)
-        for closure in result.closures:
-            self._edges.append((closure.query_id, closure.match_id))
+            retrieval = self.detector.retrieve(points, stamp, pose, gravity)
+            self._keyframes_since_save += 1
+            save_due = bool(self.settings.save_every) and self._keyframes_since_save >= self.settings.save_every
+        self.stats.keyframe(1e3 * (time.monotonic() - arrived))
+        if self._verifier is not None and retrieval.candidates:
+            # verified in the other process while this thread takes the next keyframe
+            if self._retrievals.put((retrieval, arrived)):
+                self.stats.count("unverified")
+        else:  # nothing to register: decided here
+            self._publish(verify_candidates(retrieval, self.detector.settings), arrived)
+        if save_due:
+            try:
+                self.save_database()
+            except OSError as error:  # e.g. a full disk: the keyframe is kept, the save tried again
+                self.stats.count("failed_saves")
+                self.get_logger().error(f"database not saved: {error}", throttle_duration_sec=5.0)
+
+    # -- verification thread: waits for the verification process ----------------
+
+    def _verify(self) -> None:
+        while (item := self._retrievals.take()) is not None:
+            retrieval, arrived = item
+            try:
+                result = self._verifier.verify(retrieval)
+            except VerifierError as error:  # the process is started again for the next keyframe
+                self.stats.count("verification_errors")
+                self.get_logger().error(f"keyframe {retrieval.keyframe_id} not verified: {error}")
+                continue
+            try:
+                self._publish(result, arrived)
+            except Exception as error:  # never let one keyframe end verification
+                self.stats.count("verification_errors")
+                self.get_logger().error(f"closures of keyframe {retrieval.keyframe_id} lost: {error!r}")
+
+    def _publish(self, result: KeyframeResult, arrived: float) -> None:
+        with self._db_lock:
+            self._edges.extend((closure.query_id, closure.match_id) for closure in result.closures)
+        self.stats.decided(1e3 * (time.monotonic() - arrived), len(result.closures),
+                           result.rejected_by_verification)
         if result.closures:
             self.closure_pub.publish(closures_message(result.closures))
             for closure in result.closures:
                 self.lio_sam_pub.publish(lio_sam_message(closure))
-        self._keyframes_since_save += 1
-        if self.settings.save_every and self._keyframes_since_save >= self.settings.save_every:
-            try:
-                self.save_database()
-            except OSError as error:  # e.g. a full disk: the keyframe is kept, the save tried again
-                self.stats.failed_saves += 1
-                self.get_logger().error(f"database not saved: {error}", throttle_duration_sec=5.0)
 
     # -- persistence ----------------------------------------------------------
 
@@ -251,7 +322,7 @@ class VbrlNode(Node):
             response.message = self.save_database()
             response.success = bool(self.settings.database_path)
         except OSError as error:
-            self.stats.failed_saves += 1
+            self.stats.count("failed_saves")
             response.success, response.message = False, f"save failed: {error}"
         return response
 
@@ -264,11 +335,12 @@ class VbrlNode(Node):
         return response
 
     def _publish_status(self) -> None:
-        with self._db_lock:
+        with self._db_lock:  # copies: the markers are built without holding up the worker
             size = len(self.database)
-            markers = keyframe_markers(self.database, self._edges, self.settings.map_frame,
-                                       self.get_clock().now().to_msg())
-        status = diagnostics_status(self.stats, size, self.session)
+            poses, ids = self.database.poses, self.database.keyframe_ids
+            edges = np.array(self._edges, dtype=np.int64).reshape(-1, 2)
+        markers = keyframe_markers(poses, ids, edges, self.settings.map_frame, self.get_clock().now().to_msg())
+        status = diagnostics_status(self.stats.snapshot(), size, self.session)
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status = [status]
@@ -277,11 +349,14 @@ class VbrlNode(Node):
             self.marker_pub.publish(markers)
 
     def shutdown(self) -> bool:
-        """Stop the worker (finishing the keyframe in hand) and save the database; False if that failed."""
-        with self._mailbox:
-            self._stopping = True
-            self._mailbox.notify_all()
+        """Stop the worker and verification (finishing the keyframe in hand) and save the database;
+        False if that failed."""
+        self._keyframes.close()
+        self._retrievals.close()
         self._worker.join(timeout=30.0)
+        self._verification.join(timeout=30.0)
+        if self._verifier is not None:
+            self._verifier.stop()
         if not self.settings.database_path:
             return True
         # stderr, not the ROS logger: after SIGINT/SIGTERM the context

@@ -17,11 +17,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return run(list(sys.argv if argv is None else argv))
     except KeyboardInterrupt:  # before rclpy's own signal handling is in place
-        print("vbrl_node: interrupted", file=sys.stderr)
-        # Nothing is loaded that needs saving. Leave at once: tearing down half-imported
-        # extension modules and rclpy's signal hooks now may re-raise the SIGINT (rc -2).
+        print("vbrl_node: interrupted", file=sys.stderr, flush=True)
+        # CPython records a KeyboardInterrupt raised inside exec() (dataclasses run one per
+        # generated method while a module loads) as unhandled even once caught, and would end
+        # the process by SIGINT (exit -2); nothing runs yet, so leave directly
         sys.stdout.flush()
-        sys.stderr.flush()
         os._exit(0)
 
 
@@ -36,6 +36,9 @@ def run(argv: list[str]) -> int:
         print(f"vbrl_node: cannot start: {problem}", file=sys.stderr)
         return 2
 
+    from vbrl_ros.ros.transport import use_large_data_profile
+
+    use_large_data_profile()  # before rclpy: whole clouds through shared memory
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
@@ -67,7 +70,10 @@ def run(argv: list[str]) -> int:
         if node is not None:
             code = code if node.shutdown() else 1
             node.destroy_node()
-        rclpy.try_shutdown()
+        try:
+            rclpy.try_shutdown()
+        except RuntimeError:  # rclpy's signal handler shut the context down meanwhile
+            pass
     return code
 
 

@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,13 +71,16 @@ def simulate_session_bags(
 def run_node_session(
     bag: Path, database: Path, env: dict[str, str], context, *, rate: float = 2.0,
     node_params: tuple[str, ...] = (), timeout: float = 600.0, progress: bool = False,
-    scans: int | None = None,
+    scans: int | None = None, replay_args: tuple[str, ...] = (),
+    on_node_up: Callable[[int], None] | None = None, on_idle: Callable[[], None] | None = None,
 ) -> SessionResult:
     """Start vbrl_node, replay ``bag`` into it, wait until it is idle, stop it with SIGINT.
 
     ``progress``: a bar over the ``scans`` clouds of the bag as the node reports receiving
     them, with its keyframes and closures so far; a replay takes minutes, and what the
-    node has taken in is what matters, not what the player has sent.
+    node has taken in is what matters, not what the player has sent. ``replay_args``: more
+    ``vbrl replay`` options; ``on_node_up``: called with the node's pid once it is up, before
+    the replay starts; ``on_idle``: once it has worked through the replay, before it is stopped.
     """
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -97,9 +101,11 @@ def run_node_session(
     try:
         if not collector.wait_for({"/diagnostics": 1}, timeout=60):
             raise RuntimeError("vbrl_node did not come up")
+        if on_node_up is not None:
+            on_node_up(node.pid)
         player = subprocess.Popen(
             [sys.executable, "-m", "vbrl_ros.tools.replay", str(bag), "--rate", str(rate), "--quiet",
-             "--wait-for-subscribers", "1", "--wait-topics", "/points", "/odom"],
+             "--wait-for-subscribers", "1", "--wait-topics", "/points", "/odom", *replay_args],
             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         )
         with SessionProgress(collector, bag.name, scans, progress) as bar:
@@ -109,6 +115,8 @@ def run_node_session(
             if player.returncode != 0:
                 raise RuntimeError(f"replay failed: {replay_output}")
             stats = _wait_until_idle(collector, on_spin=bar.update)
+        if on_idle is not None:
+            on_idle()
     finally:
         node.send_signal(signal.SIGINT)
         output, _ = node.communicate(timeout=120)
@@ -152,14 +160,19 @@ class SessionProgress:
             self.bar.close()
 
 
+#: The counters that move while the node still works on what it received.
+BUSY_COUNTERS = ("keyframes_processed", "loop_closures", "rejected_by_verification", "unverified_keyframes",
+                 "verification_errors")
+
+
 def _wait_until_idle(collector, timeout: float = 120.0, on_spin=lambda: None) -> dict[str, str]:
-    """Diagnostics once the node's processed-keyframe count stops moving."""
+    """Diagnostics once the node's keyframe and verification counts stop moving."""
     previous, deadline = None, time.monotonic() + timeout
     while time.monotonic() < deadline:
         collector.spin_until(lambda: on_spin() or False, 1.2)  # drain: > 2 diagnostics periods
         last = collector.messages["/diagnostics"][-1].status[0]
         current = {kv.key: kv.value for kv in last.values}
-        if previous is not None and current["keyframes_processed"] == previous["keyframes_processed"]:
+        if previous is not None and all(current.get(k) == previous.get(k) for k in BUSY_COUNTERS):
             return current
         previous = current
     raise RuntimeError("vbrl_node never went idle")

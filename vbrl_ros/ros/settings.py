@@ -24,6 +24,9 @@ from vbrl_ros.index.parameters import IndexParameters
 #: Seconds between diagnostics: at most 10 a second (each also carries every keyframe's marker), at least hourly.
 DIAGNOSTICS_PERIOD_S = (0.1, 3600.0)
 
+#: The node parameters that set the keyframe index's search: ``index_X`` is IndexParameters' ``X``.
+INDEX_PARAMETERS = ("index_candidates", "index_refine_dim", "index_bound_shifts")
+
 #: The detector's settings that are node parameters, by the same names.
 DETECTOR_PARAMETERS = tuple(f.name for f in fields(DetectorSettings) if f.name != "session")
 
@@ -62,6 +65,15 @@ DESCRIPTIONS: dict[str, str] = {
                     "stored nor scored (learned sparsity; 0.0001 drops about 13 % of the built-in "
                     "model's rows, 0.003 % of its weight).",
     "descriptor_storage": "float32, or float16: half the memory per keyframe.",
+    "index_candidates": "keyframes the index's key scan keeps per query for the exact distance; more find "
+                        "more true matches in a large database and cost ~6 us each. -1: the default for "
+                        "the model (1024 on the polar grid, 512 on the Cartesian).",
+    "index_refine_dim": "entries of the index's finer key that re-ranks the key scan's pool; 0: none. "
+                        "-1: the default for the model (512, or none when the scan key is as fine).",
+    "index_bound_shifts": "sector shifts (polar grid) among which the index picks, by a coarse bound, the "
+                          "ones it scores exactly; fewer are faster and lose more matches. -1: every "
+                          "shift. The three index_ parameters apply to a new database; a saved one keeps "
+                          "its own.",
     "loop_closure_topic": "std_msgs/Float64MultiArray topic of the accepted closures, one row each, "
                           "columns named in the message's layout.",
     "lio_sam_topic": "std_msgs/Float64MultiArray topic of each closure as LIO-SAM reads it: "
@@ -88,6 +100,9 @@ class NodeSettings:
     save_every: int = 50
     weight_prune: float = 0.0001
     descriptor_storage: str = "float32"
+    index_candidates: int = -1
+    index_refine_dim: int = -1
+    index_bound_shifts: int = -1
     loop_closure_topic: str = "~/loop_closures"
     lio_sam_topic: str = "/lio_loop/loop_closure_detection"
     markers_topic: str = "~/markers"
@@ -149,12 +164,23 @@ class NodeSettings:
             IndexParameters(storage=self.descriptor_storage)
         except ValueError as error:
             raise SettingsError(f"parameter 'descriptor_storage': {error}") from None
+        for name in INDEX_PARAMETERS:  # the upper bounds depend on the model: checked when it is loaded
+            if getattr(self, name) < -1:
+                raise SettingsError(f"parameter '{name}' must be -1 (the default) or >= 0, "
+                                    f"got {getattr(self, name)}")
         if self.save_every < 0:
             raise SettingsError(f"parameter 'save_every' must be >= 0, got {self.save_every}")
         if self.session_id < -1:
             raise SettingsError(f"parameter 'session_id' must be >= 0 (or -1 for auto), got {self.session_id}")
         if not self.cloud_topic:
             raise SettingsError("parameter 'cloud_topic' must not be empty")
+
+
+def index_parameters(settings: NodeSettings) -> IndexParameters:
+    """The keyframe index's parameters the node's settings give (-1: the model's default, None)."""
+    chosen = {name.removeprefix("index_"): getattr(settings, name) for name in INDEX_PARAMETERS}
+    return IndexParameters(storage=settings.descriptor_storage,
+                           **{name: None if value == -1 else value for name, value in chosen.items()})
 
 
 def unknown_parameters(names: list[str]) -> str:

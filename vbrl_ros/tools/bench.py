@@ -17,6 +17,14 @@ a trained polar model unless ``--polar-model`` names one.
 CPU milliseconds per candidate on simulated 64-beam keyframe pairs — revisits, half
 of them driven the other way, and unrelated places — and prints what it decided and
 how far its poses were from the truth.
+
+``--node`` measures the running node instead (:mod:`vbrl_ros.bench.node_load`):
+a simulated 64-beam, 10 Hz drive at 10 m/s replayed into ``vbrl_node`` over
+DDS at each of ``--rates`` times real time, one table row per rate (clouds
+sent and received, keyframes processed and dropped, closures, latency, the
+node's CPU and memory). The first run renders the drive into ``--out-dir``
+(about a minute); each rate then takes the drive's length divided by the rate,
+plus start-up.
 """
 
 from __future__ import annotations
@@ -49,7 +57,30 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--verification", action="store_true",
                         help="instead: loop-closure verification's cost per candidate, stage by stage, "
                              "and its accuracy")
+    node = parser.add_argument_group("the running node (--node)")
+    node.add_argument("--node", action="store_true",
+                      help="replay a simulated drive into vbrl_node at --rates and print its table instead")
+    node.add_argument("--rates", type=rates_list, default=(1.0, 2.0, 4.0), metavar="R,R,...",
+                      help="replay speed-ups (default 1,2,4)")
+    node.add_argument("--scans", type=int, metavar="N", help="replay only the drive's first N clouds")
+    node.add_argument("--beams", type=int, default=64, help="LiDAR beams of the drive (default 64)")
+    node.add_argument("--columns", type=int, default=1800, help="LiDAR columns per turn (default 1800)")
+    node.add_argument("--node-param", action="append", default=[], metavar="NAME:=VALUE",
+                      help="a vbrl_node parameter for every run (repeatable)")
+    node.add_argument("--out-dir", type=Path, default=Path("runs/bench-node"),
+                      help="where the rendered drive is kept (default runs/bench-node)")
+    node.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
+
+
+def rates_list(text: str) -> tuple[float, ...]:
+    try:
+        rates = tuple(float(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+    if not rates or not all(0 < r <= 100 for r in rates):
+        raise argparse.ArgumentTypeError(f"rates must be in (0, 100], got {text!r}")
+    return rates
 
 
 def sizes_list(text: str) -> tuple[int, ...]:
@@ -63,6 +94,8 @@ def sizes_list(text: str) -> tuple[int, ...]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.node:
+        return run_node(args)
     from vbrl_ros.bench import index as index_bench
     from vbrl_ros.bench import verification
 
@@ -96,3 +129,16 @@ def _write_json(path: Path | None, results: dict) -> None:
     if path:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(results, indent=2))
+
+
+def run_node(args: argparse.Namespace) -> int:
+    from vbrl_ros.bench import node_load
+
+    if args.scans is not None and args.scans < 2:
+        raise ValueError("--scans must be >= 2")
+    drive = node_load.Drive(beams=args.beams, columns=args.columns, scans=args.scans)
+    results = node_load.measure(args.rates, drive, args.out_dir, node_params=tuple(args.node_param),
+                                progress=not args.quiet)
+    print(node_load.format_table(results), flush=True)
+    _write_json(args.json, results)
+    return 0

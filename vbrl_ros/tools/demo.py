@@ -113,11 +113,11 @@ def run(args: argparse.Namespace) -> int:
         cross = sum(c["match_session"] != c["query_session"] for c in result.closures)
         s = result.stats
         rows.append((str(step), name, s["keyframes_processed"], str(len(result.closures)), str(cross),
-                     f"{precision:.2f}", f"{recall:.2f}", s["dropped_scans"],
+                     f"{precision:.2f}", f"{recall:.2f}", s["dropped_scans"], s["unverified_keyframes"],
                      f"{s['latency_p50_ms']}/{s['latency_p90_ms']}"))
         seen.update(bag.positions)
     header = ("session", "scenario", "keyframes", "closures", "cross-session", "precision",
-              "recall", "dropped", "latency p50/p90 ms")
+              "recall", "dropped", "unverified", "latency p50/p90 ms")
     widths = [max(len(r[i]) for r in (header, *rows)) for i in range(len(header))]
     print("\nloop closures published by vbrl_node (correct = scans within 5 m; recall over revisit scans):")
     for row in (header, *rows):

@@ -85,6 +85,9 @@ class Interrupts:
 
 def run(args: argparse.Namespace) -> int:
     """Replay as the parsed ``args`` say; 0 when done, 130 when interrupted (bad input raises ReplayError)."""
+    from vbrl_ros.ros.transport import use_large_data_profile
+
+    use_large_data_profile()  # before rclpy: clouds of megabytes arrive whole, even best effort
     with BagPlayer(args.bag, topics=args.topics, rate=args.rate, start_offset=args.start_offset,
                    duration=args.duration, loop=args.loop, remaps=dict(args.remap), cloud_qos=args.qos,
                    clock=not args.no_clock, clock_hz=args.clock_hz) as player:
