@@ -58,6 +58,13 @@ def test_eval_without_a_model_uses_the_built_in_one(sources, tmp_path, capsys):
     assert report["metrics"]["VBRL"]["3"]["num_queries"] == 25
 
 
+def test_the_built_in_model_is_todays_recognition_descriptor():
+    # a preset changed without `vbrl demo --rebuild-default-model` would ship a stale model
+    model = load_model(DEFAULT_MODEL_PATH)
+    assert model.config == recognition_config() and model.config.features.mirror_blind_wedges
+    assert model.translation_search() == RECOGNITION_TRANSLATION_SEARCH_M
+
+
 def test_the_trained_model_is_the_recognition_descriptor_with_translation_search(places_model):
     model = load_model(places_model)
     assert model.config == recognition_config()
