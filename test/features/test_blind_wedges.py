@@ -106,3 +106,13 @@ def test_a_reversed_revisit_of_a_partly_blind_sensor(scan, mirror):
         assert revisit < 0.25 * elsewhere
     else:  # each pass describes what the other could not see
         assert revisit > 0.3 * elsewhere
+
+
+def test_an_empty_or_tiny_scan_describes_without_error():
+    grid = VoxelGridConfig(kind="polar", rings=20, sectors=30, max_range=40.0, z_edges=(0.0, 20.0), frame="ground")
+    featurizer = Featurizer(VBRLConfig(grid=grid, features=FeatureConfig(
+        modalities=("height", "spectrum"), min_points=1, normalise=True, mirror_blind_wedges=True)))
+    for points in (np.zeros((0, 3)), np.array([[5.0, 0.0, 0.5]]), np.array([[np.nan, 1.0, 0.0], [3.0, 3.0, 1.0]])):
+        descriptor = featurizer.describe(points)
+        assert descriptor.shape == (featurizer.dimension,) and np.all(np.isfinite(descriptor))
+    assert not blind_bins(np.zeros((0, 2))).any()
