@@ -16,8 +16,6 @@ from vbrl_ros.features.blind_wedges import (
 )
 from vbrl_ros.features.featurizer import Featurizer
 
-sim = pytest.importorskip("vbrl_ros.simulator")
-
 
 def ring(without: tuple[float, float] | None = None, radius: float = 10.0, count: int = 3600) -> np.ndarray:
     """Points on a circle, none with azimuth (degrees, [-180, 180)) in ``without``."""
@@ -69,14 +67,6 @@ def test_the_mirror_is_the_wedge_turned_half_a_turn():
     assert BINS == 72
 
 
-@pytest.fixture(scope="module")
-def scan() -> np.ndarray:
-    town = sim.generate_town(sim.TownConfig(blocks_x=2, blocks_y=2), seed=4)
-    run = sim.simulate_run(town, sim.make_route(town, sim.RouteConfig(loops=1, spacing_m=5.0)),
-                           sim.LidarConfig(beams=32, columns=720), "summer_clear", seed=1)
-    return run.scan(7).points[:, :3].astype(np.float64)
-
-
 def turned(points: np.ndarray, angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     return points @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
@@ -93,14 +83,14 @@ def shift_min_l1(featurizer: Featurizer, a: np.ndarray, b: np.ndarray) -> float:
 
 
 @pytest.mark.parametrize("mirror", [False, True])
-def test_a_reversed_revisit_of_a_partly_blind_sensor(scan, mirror):
+def test_a_reversed_revisit_of_a_partly_blind_sensor(town_scan, mirror):
     grid = VoxelGridConfig(kind="polar", rings=20, sectors=30, max_range=40.0, z_edges=(0.0, 20.0), frame="ground")
     featurizer = Featurizer(VBRLConfig(grid=grid, features=FeatureConfig(
         modalities=("height", "spectrum"), min_points=1, normalise=True, mirror_blind_wedges=mirror)))
-    first = featurizer.describe(behind_hidden(scan))
+    first = featurizer.describe(behind_hidden(town_scan))
     # the same spot driven the other way: the world turned half a turn, the mast still behind
-    reversed_pass = featurizer.describe(behind_hidden(turned(scan, math.pi)))
-    other_place = featurizer.describe(behind_hidden(turned(scan, math.pi) + np.array([25.0, 0.0, 0.0])))
+    reversed_pass = featurizer.describe(behind_hidden(turned(town_scan, math.pi)))
+    other_place = featurizer.describe(behind_hidden(turned(town_scan, math.pi) + np.array([25.0, 0.0, 0.0])))
     revisit, elsewhere = shift_min_l1(featurizer, first, reversed_pass), shift_min_l1(featurizer, first, other_place)
     if mirror:  # both passes now describe the same half of the world: near each other, far from elsewhere
         assert revisit < 0.25 * elsewhere
