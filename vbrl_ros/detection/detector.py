@@ -49,9 +49,12 @@ class KeyframeResult:
     keyframe_id: int
     closures: list[LoopClosure]
     candidates_scored: int
-    rejected_by_verification: int
     timings_ms: dict[str, float] = field(default_factory=dict)
     rejections: dict[str, int] = field(default_factory=dict)  # reason -> candidates rejected for it
+
+    @property
+    def rejected_by_verification(self) -> int:
+        return sum(self.rejections.values())
 
 
 @dataclass
@@ -168,8 +171,7 @@ def verify_candidates(retrieval: Retrieval, settings: DetectorSettings) -> Keyfr
             )
         closures.append(closure)
     timings = {**retrieval.timings_ms, "verify": 1e3 * (time.perf_counter() - start)}
-    return KeyframeResult(retrieval.keyframe_id, closures, retrieval.candidates_scored,
-                          sum(rejections.values()), timings, rejections)
+    return KeyframeResult(retrieval.keyframe_id, closures, retrieval.candidates_scored, timings, rejections)
 
 
 def verification_cloud(points: np.ndarray, frame: np.ndarray, voxel: float) -> np.ndarray:
