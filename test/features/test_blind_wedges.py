@@ -106,3 +106,14 @@ def test_an_empty_or_tiny_scan_describes_without_error():
         descriptor = featurizer.describe(points)
         assert descriptor.shape == (featurizer.dimension,) and np.all(np.isfinite(descriptor))
     assert not blind_bins(np.zeros((0, 2))).any()
+
+
+def test_the_numpy_reference_hides_the_same_mirror_as_the_compiled_path(town_scan):
+    grid = VoxelGridConfig(kind="polar", rings=20, sectors=30, max_range=40.0, z_edges=(0.0, 20.0), frame="ground")
+    featurizer = Featurizer(VBRLConfig(grid=grid, features=FeatureConfig(
+        modalities=("height", "spectrum"), min_points=1, normalise=True, mirror_blind_wedges=True)))
+    scan = behind_hidden(town_scan)
+    framed = featurizer.frame(scan).apply(scan)
+    assert mirrored_blind_bins(framed[:, :2]).any()  # the case under test: something is hidden
+    for compiled, reference in zip(featurizer.modalities(framed), featurizer.modalities_numpy(framed)):
+        np.testing.assert_array_equal(compiled, reference)

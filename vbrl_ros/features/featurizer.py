@@ -325,6 +325,9 @@ class Featurizer:
         rest = cells % (side * side)
         centres = np.column_stack([(rest % side + 0.5) * CELL_M - reach, (rest // side + 0.5) * CELL_M - reach,
                                    edges[cells // (side * side)]])  # each column at its layer's floor
+        if self.config.features.mirror_blind_wedges:
+            keep = hide_mirrored_wedges(centres[:, :2])
+            cells, centres = cells[keep], centres[keep]
         voxel = self.grid.assign(centres).voxel
         v = self.grid.n_voxels
         out = np.zeros(v + 1)
