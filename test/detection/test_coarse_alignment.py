@@ -100,3 +100,17 @@ def test_one_query_searched_against_many_matches_as_one_pair_each(run):
     for other in (match, structure(run.scan(0).points)):
         np.testing.assert_array_equal(search.align(other).T_query_match,
                                       coarse_alignment(query, other).T_query_match)
+
+
+def test_translations_beyond_the_search_radius_are_not_searched(run):
+    (q, _), = revisits(run, turned_deg=150.0, count=1)
+    query = structure(run.scan(q).points)[:, :3]
+    moved = query - np.array([9.0, 0.0, 0.0])  # the same place, 9 m back: T_query_match moves it +9 m in x
+    found = HeadingSearch(query, max_shift_m=12.0).align(moved).T_query_match
+    np.testing.assert_allclose(found[:2, 3], [9.0, 0.0], atol=CELL_M)
+    assert abs(math.degrees(yaw_of(found))) < YAW_STEP_DEG / 2
+    near = HeadingSearch(query, max_shift_m=6.0).align(moved).T_query_match
+    assert np.linalg.norm(near[:2, 3]) <= 6.0 + 1e-9
+    with pytest.raises(ValueError, match="max_shift_m"):
+        HeadingSearch(query, max_shift_m=0.0)
+

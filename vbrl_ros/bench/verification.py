@@ -121,12 +121,14 @@ def measure(pairs: list[KeyframePair] | None = None, repeats: int = 3) -> dict[s
         outcomes = []
         for i, p in enumerate(pairs):
             start, start_cpu = time.perf_counter(), time.process_time()
-            check = verify_loop(p.query, p.match, voxel_size=VOXEL_M, max_threads=1, timings=stages[i])
+            check = verify_loop(p.query, p.match, voxel_size=VOXEL_M, max_threads=1,
+                                max_closure_distance=settings.max_closure_distance, timings=stages[i])
             cpu[i] += 1e3 * (time.process_time() - start_cpu)
             wall[i] += 1e3 * (time.perf_counter() - start)
             T, _ = to_sensor_frames(check, p.query_frame, p.match_frame)
             outcomes.append((closure_rejection(check, T, settings), check.fitness, *_pose_error(T, p.truth)))
-            verifier = QueryVerifier(p.query, voxel_size=VOXEL_M, max_threads=1)
+            verifier = QueryVerifier(p.query, voxel_size=VOXEL_M, max_threads=1,
+                                     max_closure_distance=settings.max_closure_distance)
             verifier.verify(pairs[i - 1].match)  # another candidate first: the query's side is ready
             start_cpu = time.process_time()
             verifier.verify(p.match, timings=shared[i])

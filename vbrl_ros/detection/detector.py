@@ -145,7 +145,8 @@ def verify_candidates(retrieval: Retrieval, settings: DetectorSettings) -> Keyfr
     closures: list[LoopClosure] = []
     rejections: dict[str, int] = {}
     # the query's thinning, ground, KD-tree and heading image are prepared once for all candidates
-    verifier = QueryVerifier(retrieval.cloud, voxel_size=settings.verification_voxel) if (
+    verifier = QueryVerifier(retrieval.cloud, voxel_size=settings.verification_voxel,
+                             max_closure_distance=settings.max_closure_distance) if (
         settings.verify and retrieval.candidates) else None
     for k, candidate in enumerate(retrieval.candidates):
         if len(closures) >= settings.max_closures:

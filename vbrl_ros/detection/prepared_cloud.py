@@ -120,11 +120,14 @@ class PreparedCloud:
     def tree(self) -> cKDTree:
         return cKDTree(self.points)
 
-    @cached_property
-    def heading_search(self) -> HeadingSearch:
-        """The query side of the heading search, over the registration source's structure."""
-        source, n_structure = self.source
-        return HeadingSearch(source[:n_structure])
+    def heading_search(self, max_shift_m: float) -> HeadingSearch:
+        """The query side of the heading search over the registration source's structure, for
+        translations up to ``max_shift_m``; built once per radius."""
+        searches = self.__dict__.setdefault("_searches", {})
+        if max_shift_m not in searches:
+            source, n_structure = self.source
+            searches[max_shift_m] = HeadingSearch(source[:n_structure], max_shift_m)
+        return searches[max_shift_m]
 
     def voxel_map(self, voxel: float) -> VoxelHashMap:
         """KISS-ICP's map of the points at ``voxel``, built once per voxel size."""

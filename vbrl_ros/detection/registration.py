@@ -55,12 +55,13 @@ import numpy as np
 from kiss_icp.mapping import VoxelHashMap
 from kiss_icp.registration import Registration
 
+from vbrl_ros.detection.coarse_alignment import MAX_SHIFT_M
 from vbrl_ros.detection.overlap import MIN_CONSTRAINT, agreement_of
 from vbrl_ros.detection.pose_covariance import inlier_statistics
 from vbrl_ros.detection.prepared_cloud import MAX_POINT_RANGE_M, PreparedCloud, thinned
 
-__all__ = ["COARSE_TO_FINE", "MAX_POINT_RANGE_M", "QueryVerifier", "Verification", "downsample_for_storage",
-           "verify_loop", "yaw_guess"]
+__all__ = ["COARSE_TO_FINE", "MAX_POINT_RANGE_M", "SEARCH_MARGIN_M", "QueryVerifier", "Verification",
+           "downsample_for_storage", "verify_loop", "yaw_guess"]
 
 # Map voxel size of each stage as a multiple of ``voxel_size`` (coarse to fine), from an initial guess.
 COARSE_TO_FINE = (8.0, 2.0, 1.0)
@@ -75,6 +76,9 @@ SEARCHED_COARSE_STRUCTURE = 400
 # the ground stays): ICP's cost grows with them, and its pose did not improve beyond 1200 on
 # simulated 64-beam revisits (~2200 at a 1 m voxel); sparser sensors never reach it.
 FINE_SOURCE_STRUCTURE = 1200
+#: The heading search looks this far beyond the farthest closure the caller accepts: its peak is
+#: a cell off at worst, and ICP may still pull a registration back inside.
+SEARCH_MARGIN_M = 2.0
 # Fewer inliers than this cannot constrain 6 DoF robustly (nor give a variance).
 _MIN_POINTS = 20
 _CONVERGENCE_CRITERION = 1e-4  # KISS-ICP default: stop when |dx| < 1e-4
@@ -127,6 +131,7 @@ def verify_loop(
     max_correspondence_distance: float | None = None,
     max_iterations: int = 500,
     max_threads: int = 0,
+    max_closure_distance: float | None = None,
     timings: dict[str, float] | None = None,
 ) -> Verification:
     """Register ``query_points`` (N, 3) onto ``match_points`` (M, 3) with KISS-ICP.
@@ -135,7 +140,9 @@ def verify_loop(
     yaw with metres of translation. Without one, a search over every heading finds it
     (:mod:`~vbrl_ros.detection.coarse_alignment`; both clouds levelled, z up). ``max_correspondence_distance``
     (default ``voxel_size``) gates the final ICP stage and defines inliers and
-    fitness. ``max_threads=0`` lets KISS-ICP (TBB) use every core. Empty or tiny
+    fitness. ``max_threads=0`` lets KISS-ICP (TBB) use every core. ``max_closure_distance``: the
+    caller rejects registrations farther than this (m), so the heading search looks only that far
+    (plus ``SEARCH_MARGIN_M``; default: ``MAX_SHIFT_M``). Empty or tiny
     clouds give ``converged=False`` and ``fitness=0`` instead of raising. ``timings``, when
     given, accumulates the CPU milliseconds each stage took (``vbrl bench --verification``).
     Several candidates of one query: :class:`QueryVerifier` prepares the query once.
@@ -143,7 +150,8 @@ def verify_loop(
     laps = _Laps(timings)
     verifier = QueryVerifier(query_points, voxel_size=voxel_size,
                              max_correspondence_distance=max_correspondence_distance,
-                             max_iterations=max_iterations, max_threads=max_threads)
+                             max_iterations=max_iterations, max_threads=max_threads,
+                             max_closure_distance=max_closure_distance)
     laps.lap("prepare")
     return verifier.verify(match_points, initial_guess=initial_guess, timings=timings)
 
@@ -155,13 +163,18 @@ class QueryVerifier:
 
     def __init__(self, query_points: np.ndarray, *, voxel_size: float = 1.0,
                  max_correspondence_distance: float | None = None, max_iterations: int = 500,
-                 max_threads: int = 0) -> None:
+                 max_threads: int = 0, max_closure_distance: float | None = None) -> None:
         if voxel_size <= 0:
             raise ValueError(f"voxel_size must be positive, got {voxel_size}")
         threshold = voxel_size if max_correspondence_distance is None else max_correspondence_distance
         if float(threshold) <= 0:
             raise ValueError(f"max_correspondence_distance must be positive, got {threshold}")
+        if max_closure_distance is not None and not (np.isfinite(max_closure_distance) and max_closure_distance > 0):
+            raise ValueError(f"max_closure_distance must be positive, got {max_closure_distance}")
         self.voxel, self.threshold = float(voxel_size), float(threshold)
+        # the heading search looks as far as a closure may be, and a margin beyond
+        self.search_radius = MAX_SHIFT_M if max_closure_distance is None else (
+            float(max_closure_distance) + SEARCH_MARGIN_M)
         self.query = PreparedCloud(query_points, self.voxel)
         self.registration = Registration(max_num_iterations=int(max_iterations),
                                          convergence_criterion=_CONVERGENCE_CRITERION,
@@ -183,20 +196,28 @@ class QueryVerifier:
             match = PreparedCloud(match, self.voxel)
         elif match.voxel != self.voxel:
             raise ValueError(f"the match was prepared at voxel {match.voxel}, the query at {self.voxel}")
-        query, voxel, threshold = self.query, self.voxel, self.threshold
+        query = self.query
         source, n_structure = query.source
         laps.lap("prepare")
         if len(match.points) < _MIN_POINTS or len(source) < _MIN_POINTS:
             return _failure(np.eye(4) if guess is None else guess, n_query=n_structure)
+        if guess is not None:
+            return self._register(match, guess, searched=False, laps=laps)
+        overlay = query.heading_search(self.search_radius).align(match.structure)
+        laps.lap("heading search")
+        return self._register(match, overlay.T_query_match, searched=True, laps=laps)
+
+    def _register(self, match: PreparedCloud, guess: np.ndarray, *, searched: bool, laps: _Laps) -> Verification:
+        """KISS-ICP from ``guess``, then the evidence; ``searched``: the guess came from the heading
+        search (a metre and a few degrees off), else from a caller (metres and 10 degrees)."""
+        query, voxel, threshold = self.query, self.voxel, self.threshold
+        source, n_structure = query.source
         icp_source = query.sampled_source(FINE_SOURCE_STRUCTURE)
-        # from a guess, the coarse stages may have metres and 10 degrees to go: full stages
-        stages, coarse, coarse_source = COARSE_TO_FINE[:-1], self.registration, icp_source
-        if guess is None:
-            guess = query.heading_search.align(match.structure).T_query_match
-            # within a metre and a few degrees (see SEARCHED_COARSE_TO_FINE): a short coarse stage
+        if searched:  # within a metre and a few degrees (see SEARCHED_COARSE_TO_FINE): a short coarse stage
             stages, coarse = SEARCHED_COARSE_TO_FINE[:-1], self.coarse
             coarse_source = query.sampled_source(SEARCHED_COARSE_STRUCTURE)
-            laps.lap("heading search")
+        else:  # metres and 10 degrees to go: full stages
+            stages, coarse, coarse_source = COARSE_TO_FINE[:-1], self.registration, icp_source
         # KISS-ICP solves for T_match_query (query points into the match map).
         T_mq = np.linalg.inv(_rigid(guess))
         for factor in stages:

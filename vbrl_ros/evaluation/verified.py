@@ -85,7 +85,7 @@ def _verify(task: tuple[int, int]) -> tuple[float, str | None, np.ndarray]:
     query, match = task
     if _last_query is None or _last_query[0] != query:
         _last_query = (query, QueryVerifier(queries.clouds[query], voxel_size=settings.verification_voxel,
-                                            max_threads=1))
+                                            max_threads=1, max_closure_distance=settings.max_closure_distance))
     check = _last_query[1].verify(database.clouds[match])
     T, _ = to_sensor_frames(check, queries.frames[query], database.frames[match])
     return check.fitness, closure_rejection(check, T, settings), T
