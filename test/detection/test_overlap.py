@@ -35,12 +35,36 @@ def test_a_misalignment_lowers_the_overlap():
     assert agreement(a, b, moved, 1.0, no_ground).overlap < 0.3
 
 
-def test_the_smaller_share_counts_so_a_fragment_does_not_overlap_a_whole_room():
+def test_what_a_narrow_sensor_saw_overlaps_the_whole_room_where_it_looked():
+    # one wall, as a forward-looking sensor at the origin sees it: the rest of the room lay
+    # outside its field of view and counts neither for nor against the overlap
     rng = np.random.default_rng(2)
     whole = room(rng)
-    fragment = whole[whole[:, 0] > 9.5]  # one wall only
-    assert agreement(fragment, whole, np.eye(4), 1.0, no_ground).overlap < 0.3
-    assert agreement(whole, fragment, np.eye(4), 1.0, no_ground).overlap < 0.3
+    seen_ahead = whole[whole[:, 0] > 9.5]
+    assert agreement(seen_ahead, whole, np.eye(4), 1.0, no_ground).overlap > 0.8
+    assert agreement(whole, seen_ahead, np.eye(4), 1.0, no_ground).overlap > 0.8
+
+
+def test_structure_one_sensor_saw_and_the_other_should_have_seen_lowers_the_overlap():
+    rng = np.random.default_rng(2)
+    empty, furnished = room(rng), room(rng)
+    # a row of cabinets 3 m from the sensor: in view of both, present in one room only
+    cabinets = np.c_[rng.uniform(-8, 8, 3000), np.full(3000, 3.0), rng.uniform(0, 2, 3000)]
+    furnished = np.concatenate([furnished, cabinets])
+    assert agreement(empty, room(rng), np.eye(4), 1.0, no_ground).overlap > 0.9
+    # the walls are 4000 of the furnished room's 7000 points: its share can be no more than 0.57
+    assert agreement(empty, furnished, np.eye(4), 1.0, no_ground).overlap < 0.6
+    assert agreement(furnished, empty, np.eye(4), 1.0, no_ground).overlap < 0.6
+
+
+def test_a_sensor_blind_behind_still_overlaps_the_same_place_seen_from_the_other_side():
+    # a reversed revisit of a robot whose mast hides the 90 degrees behind it: each scan misses
+    # what the other saw ahead, and only what both could see is compared
+    rng = np.random.default_rng(5)
+    whole = room(rng, 8000)
+    azimuth = np.degrees(np.arctan2(whole[:, 1], whole[:, 0]))
+    facing_east, facing_west = whole[np.abs(azimuth) < 135], whole[np.abs(azimuth) > 45]
+    assert agreement(facing_east, facing_west, np.eye(4), 1.0, no_ground).overlap > 0.8
 
 
 def test_two_parallel_walls_leave_their_axis_unconstrained():

@@ -8,9 +8,15 @@ better (measured on real recordings, candidates of the recogniser and of Scan Co
 
 * **overlap** — after alignment, the share of each cloud's structure (ground left out) that
   lies within ``OVERLAP_DISTANCE`` voxels of the other cloud; the smaller of the two shares.
+  Each share counts only the points the other sensor could have seen
+  (:mod:`~vbrl_ros.detection.visibility`): what lay in its hidden wedge, outside its field
+  of view or beyond anything it saw that way cannot overlap, and counted against the
+  overlap it held true revisits seen from the other side under the threshold.
   Both clouds come thinned (at most one point per half voxel, as registration keeps them; the
-  database stores one per voxel), so the figure hardly depends on the sensor's density. A tight distance rewards surfaces that coincide, not clutter that happens
-  to be near; taking both directions stops a small cloud from overlapping a large one.
+  database stores one per voxel), so the figure hardly depends on the sensor's density. A
+  tight distance rewards surfaces that coincide, not clutter that happens to be near; taking
+  both directions refuses a place where either sensor saw structure the other should have
+  seen and did not.
 * **constraint** — how well the matched surfaces fix the horizontal position: the weakest
   over the strongest eigenvalue of the point-to-plane information of the inliers in x, y.
   In a corridor or along a uniform facade every normal is across the axis, ICP slides freely
@@ -63,11 +69,19 @@ def agreement_of(query: PreparedCloud, match: PreparedCloud, T_query_match: np.n
     voxel = query.voxel
     near = OVERLAP_DISTANCE * voxel
     # beyond the bound a distance is inf: it counts neither as near nor as an inlier
-    to_match, nearest = match.tree.query((q_structure - t) @ R, distance_upper_bound=voxel)
-    to_query, _ = query.tree.query(m_structure @ R.T + t, distance_upper_bound=near)
-    overlap = min(float(np.mean(to_match < near)), float(np.mean(to_query < near)))
+    q_in_match, m_in_query = (q_structure - t) @ R, m_structure @ R.T + t
+    to_match, nearest = match.tree.query(q_in_match, distance_upper_bound=voxel)
+    to_query, _ = query.tree.query(m_in_query, distance_upper_bound=near)
+    overlap = min(_share(to_match < near, match.horizon.sees(q_in_match)),
+                  _share(to_query < near, query.horizon.sees(m_in_query)))
     inlier = to_match < voxel
     return Agreement(overlap, _constraint(match, nearest[inlier], R))
+
+
+def _share(near: np.ndarray, visible: np.ndarray) -> float:
+    """The share of the visible points that are near the other cloud; 0 when too few are visible."""
+    n = int(visible.sum())
+    return float(np.count_nonzero(near & visible)) / n if n >= _MIN_STRUCTURE else 0.0
 
 
 def _constraint(surface: PreparedCloud, nearest: np.ndarray, R: np.ndarray) -> float:

@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 from vbrl_ros.detection.coarse_alignment import HeadingSearch
 from vbrl_ros.detection.ground import ground_mask
 from vbrl_ros.detection.surface_normals import surfaces
+from vbrl_ros.detection.visibility import Horizon
 
 # No LiDAR measures farther than this along any axis (the longest-range ones reach ~500 m);
 # points beyond are corrupt and are dropped before storage and verification.
@@ -115,6 +116,11 @@ class PreparedCloud:
                 keep = np.sort(np.random.default_rng(0).choice(n_structure, max_structure, replace=False))
                 samples[max_structure] = np.ascontiguousarray(np.concatenate([source[keep], source[n_structure:]]))
         return samples[max_structure]
+
+    @cached_property
+    def horizon(self) -> Horizon:
+        """How far this cloud's sensor saw in each direction, to a voxel."""
+        return Horizon(self.points, self.voxel)
 
     @cached_property
     def tree(self) -> cKDTree:
