@@ -62,13 +62,14 @@ class GroundFrame:
 
 @njit(cache=True, nogil=True)
 def lowest_points(points, cell, min_range, max_range):
-    """The lowest finite point of every occupied cell x cell column within the range ring."""
+    """The lowest finite point of every occupied cell x cell column within the range ring,
+    float64; ``points`` (N, 3+) float32 or float64 (read as float64: no converted copy)."""
     n_side = int(2.0 * max_range / cell) + 1
     low = np.full(n_side * n_side, np.inf)
     idx = np.full(n_side * n_side, -1, np.int64)
     r0, r1 = min_range * min_range, max_range * max_range
     for i in range(points.shape[0]):
-        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        x, y, z = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
         if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
             continue
         rr = x * x + y * y
@@ -158,10 +159,12 @@ def ground_frame(points: np.ndarray, gravity_rotation: np.ndarray | None = None)
     ``gravity_rotation`` (3x3, sensor -> a gravity-aligned frame, e.g. odometry's roll and
     pitch) replaces the fitted tilt; only the height is fitted then.
     """
-    xyz = np.ascontiguousarray(np.asarray(points, dtype=np.float64)[:, :3])
     base = np.eye(3) if gravity_rotation is None else np.asarray(gravity_rotation, np.float64)
-    if gravity_rotation is not None:
-        xyz = xyz @ base.T
+    if gravity_rotation is None:  # read as given: a float64 copy of a 120k-point scan costs more than the pass
+        xyz = np.asarray(points)
+        xyz = xyz if xyz.dtype in (np.float32, np.float64) else xyz.astype(np.float64)
+    else:
+        xyz = np.ascontiguousarray(np.asarray(points, dtype=np.float64)[:, :3]) @ base.T
     low = lowest_points(xyz, CELL_M, MIN_RANGE_M, MAX_RANGE_M)
     fit = fit_ground(low, max_tilt_deg=MAX_TILT_DEG if gravity_rotation is None else 5.0)
     if fit is None:
