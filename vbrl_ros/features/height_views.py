@@ -23,7 +23,7 @@ from numba import njit
 
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
 from vbrl_ros.features.bev_spectrum import SpectrumSampler
-from vbrl_ros.features.blind_wedges import hide_mirrored_wedges
+from vbrl_ros.features.blind_wedges import azimuth_bins, hide_mirrored_wedges
 from vbrl_ros.features.height_map import (
     CELL_M,
     MARGIN_M,
@@ -78,6 +78,15 @@ def view_table(grid: VoxelGridConfig, offsets: tuple[tuple[float, float], ...]) 
     return table
 
 
+@lru_cache(maxsize=CACHED_TABLES)
+def column_azimuth_bins(reach: float) -> np.ndarray:
+    """(columns,) the azimuth bin of every map column's centre (:func:`azimuth_bins`, once
+    per map instead of an arctangent per occupied column and scan)."""
+    bins = azimuth_bins(column_centres(map_side(reach, CELL_M), CELL_M, reach)).astype(np.int16)
+    bins.flags.writeable = False
+    return bins
+
+
 @njit(cache=True, nogil=True)
 def view_tops(table, column, height, layer, per_layer, layers):
     """(views, voxels) top height of every voxel from every viewpoint of ``table``, and its
@@ -113,8 +122,9 @@ class HeightMapModalities:
         cells = HeightCells(*height_cells(points, frame.rotation, float(frame.height), self.reach, CELL_M,
                                           self.z_edges))
         if self.config.features.mirror_blind_wedges:
-            keep = hide_mirrored_wedges(cells.xy)
-            cells = cells.subset(keep)
+            keep = hide_mirrored_wedges(cells.xy, column_azimuth_bins(self.reach)[cells.column])
+            if not keep.all():  # most scans see all round: nothing to copy
+                cells = cells.subset(keep)
         return cells
 
     def heights(self, cells: HeightCells, offsets: np.ndarray) -> np.ndarray:
