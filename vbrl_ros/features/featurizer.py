@@ -260,8 +260,11 @@ class Featurizer:
         return [blocks[name] for name in self.modality_names]
 
     def modalities_numpy(self, points: np.ndarray, offset: tuple[float, float] = (0.0, 0.0)) -> list[np.ndarray]:
-        """Reference implementation of :meth:`modalities` in plain numpy (same results), and of
-        one view of :meth:`describe_views` from the viewpoint ``offset``.
+        """Reference implementation of :meth:`modalities` in plain numpy (same results).
+
+        ``offset`` (x, y): the viewpoint the height map is read from, as :meth:`describe_views`
+        reads it for height-map modalities; the paper's modalities describe the points moved
+        by minus ``offset``.
 
         Grid-agnostic: the grid's assignment gives sub-cells and (for the polar
         grid, voxel-local) coordinates; everything after is the same.
