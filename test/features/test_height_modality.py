@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 
 from vbrl_ros.config import MODALITY_NAMES, FeatureConfig, VBRLConfig, VoxelGridConfig
+from vbrl_ros.features.blind_wedges import mirrored_blind_bins
 from vbrl_ros.features.featurizer import Featurizer
+from vbrl_ros.index.translation_search import view_offsets
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.training.presets import recognition_config
 
@@ -129,6 +131,26 @@ def test_views_of_other_modalities_describe_the_shifted_points_exactly(run):
     views = f.describe_views(points, [(1.5, -0.5), (0.0, 3.0)])
     np.testing.assert_array_equal(views[0], f.describe_framed(points - [1.5, -0.5, 0.0]))
     np.testing.assert_array_equal(views[1], f.describe_framed(points - [0.0, 3.0, 0.0]))
+
+
+@pytest.mark.parametrize("grid", [GROUND_POLAR, GROUND_CARTESIAN, POLAR], ids=["polar", "cartesian", "3-layer"])
+@pytest.mark.parametrize("mirror", [False, True])
+def test_every_view_equals_the_numpy_reference_from_its_viewpoint(run, grid, mirror):
+    """Bit for bit: translation search's viewpoints, off-cell ones and one beyond the map's margin."""
+    modalities = ("height", "spectrum") if grid.kind == "polar" else ("height",)
+    f = Featurizer(VBRLConfig(grid=grid, features=FeatureConfig(modalities=modalities, min_points=2,
+                                                                mirror_blind_wedges=mirror)))
+    offsets = np.vstack([view_offsets(1.5), [(0.3, -0.1), (-2.75, 1.05), (0.0, 6.0)]])
+    for k in (10, 60):
+        points = framed(f, run.scan(k).points)
+        if mirror:  # the sensor did not see behind it: there is a wedge to hide
+            points = points[points[:, 0] > -np.abs(points[:, 1])]
+            assert mirrored_blind_bins(points[:, :2]).any()
+        views = f.describe_views(points, offsets)
+        for view, offset in zip(views, offsets):
+            reference = np.concatenate([b.ravel() for b in f.modalities_numpy(points, tuple(offset))])
+            np.testing.assert_array_equal(view, reference.astype(np.float32))
+        assert len({v.tobytes() for v in views}) == len(offsets)  # every view differs
 
 
 @pytest.mark.parametrize("grid", [GROUND_POLAR, GROUND_CARTESIAN], ids=["polar", "cartesian"])

@@ -10,7 +10,21 @@ import math
 import numpy as np
 import pytest
 
-from vbrl_ros.grids.ground_frame import FALLBACK_HEIGHT_M, GroundFrame, ground_frame, gravity_rotation
+from vbrl_ros.grids.ground_frame import (
+    CELL_M,
+    FALLBACK_HEIGHT_M,
+    HYPOTHESES,
+    INLIER_M,
+    MAX_RANGE_M,
+    MAX_TILT_DEG,
+    MIN_INLIERS,
+    MIN_RANGE_M,
+    GroundFrame,
+    fit_ground,
+    gravity_rotation,
+    ground_frame,
+    lowest_points,
+)
 
 
 def rx(deg: float) -> np.ndarray:
@@ -206,3 +220,51 @@ def test_non_finite_points_are_ignored():
     clean, frame = ground_frame(points), ground_frame(dirty)
     np.testing.assert_array_equal(frame.rotation, clean.rotation)
     assert frame.height == clean.height and frame.found
+
+
+def fit_by_matrix_product(low: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """fit_ground written with a (lowest points x hypotheses) matrix product: its reference."""
+    if len(low) < MIN_INLIERS:
+        return None
+    tri = low[np.random.default_rng(0x5EED).integers(0, len(low), size=(HYPOTHESES, 3))]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norms = np.linalg.norm(normals, axis=1)
+    ok = norms > 1e-9
+    normals = normals[ok] / norms[ok, None]
+    normals *= np.sign(normals[:, 2:3]) + (normals[:, 2:3] == 0)
+    heights = -np.einsum("hk,hk->h", normals, tri[ok, 0])
+    ok = (normals[:, 2] >= math.cos(math.radians(MAX_TILT_DEG))) & (heights > 0)
+    if not ok.any():
+        return None
+    normals, heights = normals[ok], heights[ok]
+    signed = low @ normals.T + heights
+    inliers = np.abs(signed) < INLIER_M
+    best = int(np.argmax(inliers.sum(0) - 3 * (signed < -3 * INLIER_M).sum(0)))
+    chosen = low[inliers[:, best]]
+    if len(chosen) < MIN_INLIERS:
+        return None
+    centre = chosen.mean(0)
+    normal = np.linalg.svd(chosen - centre, full_matrices=False)[2][2]
+    normal = normal if normal[2] > 0 else -normal
+    return normal, float(-normal @ centre)
+
+
+@pytest.mark.parametrize("height, roll, pitch", MOUNTS)
+def test_the_compiled_fit_is_the_matrix_product_fit(height, roll, pitch):
+    """Same plane, bit for bit, on rough ground (other samples would give other planes)."""
+    rough = SCENE.copy()
+    rough[:, 2] += np.random.default_rng(7).normal(0.0, 0.08, len(rough)) * (rough[:, 2] < 0.2)
+    low = lowest_points(seen_from(rough, height, mount(roll, pitch)), CELL_M, MIN_RANGE_M, MAX_RANGE_M)
+    (normal, offset), (expected_normal, expected_offset) = fit_ground(low), fit_by_matrix_product(low)
+    np.testing.assert_array_equal(normal, expected_normal)
+    assert offset == expected_offset
+
+
+def test_float32_points_and_extra_columns_give_the_frame_of_their_float64_xyz():
+    points = seen_from(SCENE, 1.2, mount(10.0, 10.0)).astype(np.float32)
+    with_intensity = np.column_stack([points, np.ones(len(points), np.float32)])
+    expected = ground_frame(points[:, :3].astype(np.float64))
+    for given in (points, with_intensity, with_intensity[:, :3]):
+        frame = ground_frame(given)
+        np.testing.assert_array_equal(frame.rotation, expected.rotation)
+        assert frame.height == expected.height and frame.found

@@ -64,9 +64,10 @@ def mirrored_blind_bins(xy: np.ndarray, bins: np.ndarray | None = None) -> np.nd
     return np.roll(blind_bins(xy, bins), BINS // 2)
 
 
-def hide_mirrored_wedges(xy: np.ndarray) -> np.ndarray:
-    """(n,) bool: which of the points (or height-map cells) at ``xy`` to keep."""
-    bins = azimuth_bins(xy)
+def hide_mirrored_wedges(xy: np.ndarray, bins: np.ndarray | None = None) -> np.ndarray:
+    """(n,) bool: which of the points (or height-map cells) at ``xy`` to keep. ``bins``:
+    :func:`azimuth_bins` of ``xy``, when the caller has them."""
+    bins = azimuth_bins(xy) if bins is None else bins
     hidden = mirrored_blind_bins(xy, bins)
     if not hidden.any():
         return np.ones(len(xy), dtype=bool)

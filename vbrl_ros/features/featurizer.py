@@ -32,15 +32,9 @@ from functools import cached_property
 import numpy as np
 
 from vbrl_ros.config import HEIGHT_MAP_MODALITIES, MODALITY_NAMES, PAPER_MODALITIES, VBRLConfig
-from vbrl_ros.features.bev_spectrum import SpectrumSampler
 from vbrl_ros.features.blind_wedges import hide_mirrored_wedges
-from vbrl_ros.features.height_map import (
-    CELL_M,
-    MARGIN_M,
-    cartesian_heights,
-    height_cells,
-    polar_heights,
-)
+from vbrl_ros.features.height_map import CELL_M, MARGIN_M
+from vbrl_ros.features.height_views import HeightMapModalities
 from vbrl_ros.features.hog import hog_batch
 from vbrl_ros.features.kernels import accumulate_polar_voxels, accumulate_voxels
 from vbrl_ros.grids.ground_frame import GroundFrame, ground_frame
@@ -206,10 +200,12 @@ class Featurizer:
         offsets = np.asarray(offsets, dtype=np.float64).reshape(-1, 2)
         points = _as_points(points)
         if self._height_map_only:
-            cells = self._height_cells(points, frame)
-            spectrum = self._spectrum(cells) if "spectrum" in self.modality_names else None
-            return np.stack([self._vector(self._select([], self._heights(cells, dx, dy), spectrum))
-                             for dx, dy in offsets]) if len(offsets) else np.zeros((0, self.dimension), np.float32)
+            if not len(offsets):
+                return np.zeros((0, self.dimension), np.float32)
+            cells = self._height_map.cells(points, frame)
+            spectrum = self._height_map.spectrum(cells) if "spectrum" in self.modality_names else None
+            return np.stack([self._vector(self._select([], top[:, None], spectrum))
+                             for top in self._height_map.heights(cells, offsets)])
         if frame is not None:
             points = frame.apply(points)
         shift = np.zeros(points.shape[1])
@@ -224,15 +220,8 @@ class Featurizer:
         return set(self.modality_names) <= set(HEIGHT_MAP_MODALITIES)
 
     @cached_property
-    def _spectrum_sampler(self) -> SpectrumSampler:
-        return SpectrumSampler(self.config.grid.rings, self.config.grid.sectors)
-
-    def _spectrum(self, cells: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
-        """The spectrum block (n_voxels, 1): one spectrum of each layer's bird's-eye image."""
-        xy, height, layer_of = cells
-        sampler = self._spectrum_sampler
-        return np.concatenate([sampler.spectrum(sampler.image(xy[layer_of == layer], height[layer_of == layer]))
-                               for layer in range(self.config.grid.n_layers)])[:, None]
+    def _height_map(self) -> HeightMapModalities:
+        return HeightMapModalities(self.config)
 
     def _vector(self, blocks: list[np.ndarray]) -> np.ndarray:
         parts = [b.ravel() for b in blocks]
@@ -240,40 +229,14 @@ class Featurizer:
             parts = [p / total if (total := np.abs(p).sum()) > 0 else p for p in parts]
         return np.concatenate(parts).astype(np.float32)
 
-    def _height_cells(self, points: np.ndarray, frame: GroundFrame | None = None
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        grid = self.config.grid
-        reach = (grid.max_range if grid.kind == "polar" else grid.extent_xy) + MARGIN_M
-        frame = frame or GroundFrame.identity()
-        xy, height, layer_of = height_cells(points, frame.rotation, float(frame.height), reach, CELL_M,
-                                            self.grid.z_edges)
-        if self.config.features.mirror_blind_wedges:
-            keep = hide_mirrored_wedges(xy)
-            xy, height, layer_of = xy[keep], height[keep], layer_of[keep]
-        return xy, height, layer_of
-
-    def _heights(self, cells: tuple[np.ndarray, np.ndarray, np.ndarray],
-                 dx: float = 0.0, dy: float = 0.0) -> np.ndarray:
-        """The height block (n_voxels, 1) seen from (dx, dy); voxels with fewer than
-        ``min_points`` map cells are empty."""
-        grid, cfg = self.grid, self.config.grid
-        if grid.kind == "polar":
-            bound_cos, bound_sin = grid.angular_bounds(1)
-            top, count = polar_heights(*cells, dx, dy, cfg.max_range, cfg.rings, cfg.sectors,
-                                       bound_cos, bound_sin, cfg.n_layers)
-        else:
-            top, count = cartesian_heights(*cells, dx, dy, cfg.extent_xy, cfg.cells_xy, cfg.n_layers)
-        top[count < self.config.features.min_points] = 0.0
-        return top[:, None]
-
     def modalities(self, points: np.ndarray) -> list[np.ndarray]:
         """The configured per-voxel feature blocks, each (n_voxels, k_i), float64 (compiled
         path); ``points`` (N, 3+) in the grid's frame."""
         points = _as_points(points)
         names = self.modality_names
-        cells = self._height_cells(points) if set(names) & set(HEIGHT_MAP_MODALITIES) else None
-        heights = self._heights(cells) if "height" in names else None
-        spectrum = self._spectrum(cells) if "spectrum" in names else None
+        cells = self._height_map.cells(points) if set(names) & set(HEIGHT_MAP_MODALITIES) else None
+        heights = self._height_map.heights(cells, np.zeros((1, 2)))[0][:, None] if "height" in names else None
+        spectrum = self._height_map.spectrum(cells) if "spectrum" in names else None
         if not set(names) & set(PAPER_MODALITIES):
             return self._select([], heights, spectrum)
         grid, size = self.grid, self.config.features.raster_size
@@ -296,20 +259,26 @@ class Featurizer:
         blocks = dict(zip(PAPER_MODALITIES, paper), height=heights, spectrum=spectrum)
         return [blocks[name] for name in self.modality_names]
 
-    def modalities_numpy(self, points: np.ndarray) -> list[np.ndarray]:
+    def modalities_numpy(self, points: np.ndarray, offset: tuple[float, float] = (0.0, 0.0)) -> list[np.ndarray]:
         """Reference implementation of :meth:`modalities` in plain numpy (same results).
+
+        ``offset`` (x, y): the viewpoint the height map is read from, as :meth:`describe_views`
+        reads it for height-map modalities; the paper's modalities describe the points moved
+        by minus ``offset``.
 
         Grid-agnostic: the grid's assignment gives sub-cells and (for the polar
         grid, voxel-local) coordinates; everything after is the same.
         """
         points = _as_points(points)
         # the spectrum has no second implementation: it is numpy already
-        spectrum = self._spectrum(self._height_cells(points)) if "spectrum" in self.modality_names else None
-        return self._select(self._paper_numpy(points), self._heights_numpy(points), spectrum)
+        spectrum = (self._height_map.spectrum(self._height_map.cells(points)) if "spectrum" in self.modality_names
+                    else None)
+        shift = np.array([*offset, *[0.0] * (points.shape[1] - 2)])
+        return self._select(self._paper_numpy(points - shift), self._heights_numpy(points, offset), spectrum)
 
-    def _heights_numpy(self, points: np.ndarray) -> np.ndarray:
-        """The height block from first principles: every map column's top, its centre
-        assigned by the grid, the top of the columns per voxel."""
+    def _heights_numpy(self, points: np.ndarray, offset: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+        """The height block from first principles: every map column's top, its centre seen
+        from ``offset`` assigned by the grid, the top of the columns per voxel."""
         cfg, edges = self.config.grid, self.grid.z_edges
         reach = (cfg.max_range if cfg.kind == "polar" else cfg.extent_xy) + MARGIN_M
         x, y, z = (np.asarray(points[:, k], dtype=np.float64) for k in range(3))
@@ -328,6 +297,7 @@ class Featurizer:
         if self.config.features.mirror_blind_wedges:
             keep = hide_mirrored_wedges(centres[:, :2])
             cells, centres = cells[keep], centres[keep]
+        centres[:, :2] -= offset  # the map stays; the viewpoint moves
         voxel = self.grid.assign(centres).voxel
         v = self.grid.n_voxels
         out = np.zeros(v + 1)

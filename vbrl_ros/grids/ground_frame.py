@@ -62,13 +62,14 @@ class GroundFrame:
 
 @njit(cache=True, nogil=True)
 def lowest_points(points, cell, min_range, max_range):
-    """The lowest finite point of every occupied cell x cell column within the range ring."""
+    """The lowest finite point of every occupied cell x cell column within the range ring,
+    float64; ``points`` (N, 3+) float32 or float64 (read as float64: no converted copy)."""
     n_side = int(2.0 * max_range / cell) + 1
     low = np.full(n_side * n_side, np.inf)
     idx = np.full(n_side * n_side, -1, np.int64)
     r0, r1 = min_range * min_range, max_range * max_range
     for i in range(points.shape[0]):
-        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        x, y, z = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
         if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
             continue
         rr = x * x + y * y
@@ -117,8 +118,43 @@ def _sample_triples(n: int, count: int) -> np.ndarray:
     return rng.integers(0, n, size=(count, 3))  # repeated indices give no normal: dropped
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _above(columns, k, normal, height):
+    """Height of lowest point ``k`` (``columns``: (3, n) x, y, z) above the plane."""
+    return columns[0, k] * normal[0] + columns[1, k] * normal[1] + columns[2, k] * normal[2] + height
+
+
+@njit(cache=True, nogil=True)
+def _plane_scores(columns, normals, heights):
+    """(H,) score of every plane: the ground has most lowest points on it and few below it
+    (below = a wrong, raised plane). One pass per plane, no (cells, H) temporaries."""
+    score = np.zeros(normals.shape[0], np.int64)
+    for h in range(normals.shape[0]):
+        total = 0
+        for k in range(columns.shape[1]):
+            signed = _above(columns, k, normals[h], heights[h])
+            total += (1 if abs(signed) < INLIER_M else 0) - (3 if signed < -3 * INLIER_M else 0)
+        score[h] = total
+    return score
+
+
+@njit(cache=True, nogil=True)
+def _plane_inliers(columns, normal, height):
+    """(n,) bool: the lowest points within ``INLIER_M`` of the plane, as :func:`_plane_scores` counts them."""
+    inliers = np.empty(columns.shape[1], np.bool_)
+    for k in range(columns.shape[1]):
+        inliers[k] = abs(_above(columns, k, normal, height)) < INLIER_M
+    return inliers
+
+
 def fit_ground(low: np.ndarray, max_tilt_deg: float = MAX_TILT_DEG) -> tuple[np.ndarray, float] | None:
-    """(unit normal with n_z > 0, height of the origin above the plane) or None."""
+    """(unit normal with n_z > 0, height of the origin above the plane) or None.
+
+    The hypotheses are scored in a compiled loop rather than through a (cells, H) matrix
+    product, which allocated ~2 MB per scan; the two round differently only in the last
+    bit, so a lowest point would have to lie within ~1e-16 m of an inlier bound to count
+    differently.
+    """
     if len(low) < MIN_INLIERS:
         return None
     tri = low[_sample_triples(len(low), HYPOTHESES)]  # (H, 3, 3)
@@ -131,13 +167,10 @@ def fit_ground(low: np.ndarray, max_tilt_deg: float = MAX_TILT_DEG) -> tuple[np.
     ok = (normals[:, 2] >= math.cos(math.radians(max_tilt_deg))) & (heights > 0)
     if not ok.any():
         return None
-    normals, heights = normals[ok], heights[ok]
-    signed = low @ normals.T + heights  # (cells, H): height of each lowest point above each plane
-    inliers = np.abs(signed) < INLIER_M
-    # The ground has most lowest points on it and few below it (below = a wrong, raised plane).
-    score = inliers.sum(0) - 3 * (signed < -3 * INLIER_M).sum(0)
-    best = int(np.argmax(score))
-    chosen = low[inliers[:, best]]
+    normals, heights = np.ascontiguousarray(normals[ok]), heights[ok]
+    columns = np.ascontiguousarray(low.T)
+    best = int(np.argmax(_plane_scores(columns, normals, heights)))
+    chosen = low[_plane_inliers(columns, normals[best], heights[best])]
     if len(chosen) < MIN_INLIERS:
         return None
     centre = chosen.mean(0)
@@ -158,10 +191,12 @@ def ground_frame(points: np.ndarray, gravity_rotation: np.ndarray | None = None)
     ``gravity_rotation`` (3x3, sensor -> a gravity-aligned frame, e.g. odometry's roll and
     pitch) replaces the fitted tilt; only the height is fitted then.
     """
-    xyz = np.ascontiguousarray(np.asarray(points, dtype=np.float64)[:, :3])
     base = np.eye(3) if gravity_rotation is None else np.asarray(gravity_rotation, np.float64)
-    if gravity_rotation is not None:
-        xyz = xyz @ base.T
+    if gravity_rotation is None:  # read as given: a float64 copy of a 120k-point scan costs more than the pass
+        xyz = np.asarray(points)
+        xyz = xyz if xyz.dtype in (np.float32, np.float64) else xyz.astype(np.float64)
+    else:
+        xyz = np.ascontiguousarray(np.asarray(points, dtype=np.float64)[:, :3]) @ base.T
     low = lowest_points(xyz, CELL_M, MIN_RANGE_M, MAX_RANGE_M)
     fit = fit_ground(low, max_tilt_deg=MAX_TILT_DEG if gravity_rotation is None else 5.0)
     if fit is None:
