@@ -3,7 +3,8 @@ from dataclasses import replace
 import numpy as np
 
 from vbrl_ros.detection.database import KeyframeDatabase
-from vbrl_ros.detection.detector import LoopClosureDetector
+from vbrl_ros.detection.detector import LoopClosureDetector, query_verifier
+from vbrl_ros.detection.registration import SEARCH_MARGIN_M
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.model.builtin import load_default_model
 from vbrl_ros.model.model_file import UNCALIBRATED_DISTANCE_THRESHOLD
@@ -31,3 +32,11 @@ def test_a_revisit_below_the_threshold_is_a_closure():
     assert found.process_keyframe(points, 0.0).closures == []
     again = found.process_keyframe(points, 1.0)
     assert [c.match_id for c in again.closures] == [0] and again.closures[0].distance == 0.0
+
+
+def test_a_querys_verifier_searches_headings_only_as_far_as_a_closure_is_accepted():
+    cloud = np.random.default_rng(1).uniform(-20, 20, (500, 3))
+    for farthest in (3.0, 5.0, 12.0):
+        verifier = query_verifier(cloud, DetectorSettings(max_closure_distance=farthest, verification_voxel=0.5))
+        assert verifier.search_radius == farthest + SEARCH_MARGIN_M
+        assert verifier.voxel == 0.5

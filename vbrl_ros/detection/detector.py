@@ -145,9 +145,7 @@ def verify_candidates(retrieval: Retrieval, settings: DetectorSettings) -> Keyfr
     closures: list[LoopClosure] = []
     rejections: dict[str, int] = {}
     # the query's thinning, ground, KD-tree and heading image are prepared once for all candidates
-    verifier = QueryVerifier(retrieval.cloud, voxel_size=settings.verification_voxel,
-                             max_closure_distance=settings.max_closure_distance) if (
-        settings.verify and retrieval.candidates) else None
+    verifier = query_verifier(retrieval.cloud, settings) if settings.verify and retrieval.candidates else None
     for k, candidate in enumerate(retrieval.candidates):
         if len(closures) >= settings.max_closures:
             break
@@ -173,6 +171,13 @@ def verify_candidates(retrieval: Retrieval, settings: DetectorSettings) -> Keyfr
         closures.append(closure)
     timings = {**retrieval.timings_ms, "verify": 1e3 * (time.perf_counter() - start)}
     return KeyframeResult(retrieval.keyframe_id, closures, retrieval.candidates_scored, timings, rejections)
+
+
+def query_verifier(cloud: np.ndarray, settings: DetectorSettings, max_threads: int = 0) -> QueryVerifier:
+    """The verifier of one query's candidates under ``settings``: at their voxel, its heading search
+    no farther than a closure they accept."""
+    return QueryVerifier(cloud, voxel_size=settings.verification_voxel, max_threads=max_threads,
+                         max_closure_distance=settings.max_closure_distance)
 
 
 def verification_cloud(points: np.ndarray, frame: np.ndarray, voxel: float) -> np.ndarray:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from vbrl_ros.detection.detector import closure_rejection, to_sensor_frames
+from vbrl_ros.detection.detector import closure_rejection, query_verifier, to_sensor_frames
 from vbrl_ros.detection.registration import QueryVerifier
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.evaluation.metrics import RetrievalMetrics
@@ -84,8 +84,7 @@ def _verify(task: tuple[int, int]) -> tuple[float, str | None, np.ndarray]:
     queries, database, settings = _worker
     query, match = task
     if _last_query is None or _last_query[0] != query:
-        _last_query = (query, QueryVerifier(queries.clouds[query], voxel_size=settings.verification_voxel,
-                                            max_threads=1, max_closure_distance=settings.max_closure_distance))
+        _last_query = (query, query_verifier(queries.clouds[query], settings, max_threads=1))
     check = _last_query[1].verify(database.clouds[match])
     T, _ = to_sensor_frames(check, queries.frames[query], database.frames[match])
     return check.fitness, closure_rejection(check, T, settings), T
