@@ -24,10 +24,11 @@ import numpy as np
 
 from vbrl_ros.detection.detector import (
     closure_rejection,
+    query_verifier,
     to_sensor_frames,
     verification_cloud,
 )
-from vbrl_ros.detection.registration import QueryVerifier, verify_loop, yaw_guess
+from vbrl_ros.detection.registration import verify_loop, yaw_guess
 from vbrl_ros.detection.settings import DetectorSettings
 
 VOXEL_M = 1.0
@@ -110,10 +111,10 @@ def keyframe_pairs(revisits: int = 24, unrelated: int = 12, seed: int = 3) -> li
 def measure(pairs: list[KeyframePair] | None = None, repeats: int = 3) -> dict[str, Any]:
     """CPU milliseconds per candidate of each stage (mean over ``repeats`` passes over ``pairs``),
     for revisits and unrelated places apart, and for a query whose preparation is shared
-    (:class:`QueryVerifier`, as for a query's second and later candidates); the decisions and
-    pose errors of the last pass."""
+    (:func:`~vbrl_ros.detection.detector.query_verifier`, as for a query's second and later
+    candidates); the decisions and pose errors of the last pass."""
     pairs = keyframe_pairs() if pairs is None else pairs
-    settings = DetectorSettings()
+    settings = DetectorSettings(verification_voxel=VOXEL_M)
     stages: list[dict[str, float]] = [{} for _ in pairs]
     shared: list[dict[str, float]] = [{} for _ in pairs]
     cpu, cpu_shared, wall = np.zeros(len(pairs)), np.zeros(len(pairs)), np.zeros(len(pairs))
@@ -127,8 +128,7 @@ def measure(pairs: list[KeyframePair] | None = None, repeats: int = 3) -> dict[s
             wall[i] += 1e3 * (time.perf_counter() - start)
             T, _ = to_sensor_frames(check, p.query_frame, p.match_frame)
             outcomes.append((closure_rejection(check, T, settings), check.fitness, *_pose_error(T, p.truth)))
-            verifier = QueryVerifier(p.query, voxel_size=VOXEL_M, max_threads=1,
-                                     max_closure_distance=settings.max_closure_distance)
+            verifier = query_verifier(p.query, settings, max_threads=1)
             verifier.verify(pairs[i - 1].match)  # another candidate first: the query's side is ready
             start_cpu = time.process_time()
             verifier.verify(p.match, timings=shared[i])
