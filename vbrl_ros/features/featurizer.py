@@ -33,8 +33,8 @@ import numpy as np
 
 from vbrl_ros.config import HEIGHT_MAP_MODALITIES, MODALITY_NAMES, PAPER_MODALITIES, VBRLConfig
 from vbrl_ros.features.blind_wedges import hide_mirrored_wedges
-from vbrl_ros.features.height_map import CELL_M, MARGIN_M
-from vbrl_ros.features.height_views import HeightMapModalities
+from vbrl_ros.features.height_map import CELL_M
+from vbrl_ros.features.height_views import HeightMapModalities, map_reach
 from vbrl_ros.features.hog import hog_batch
 from vbrl_ros.features.kernels import accumulate_polar_voxels, accumulate_voxels
 from vbrl_ros.grids.ground_frame import GroundFrame, ground_frame
@@ -280,7 +280,7 @@ class Featurizer:
         """The height block from first principles: every map column's top, its centre seen
         from ``offset`` assigned by the grid, the top of the columns per voxel."""
         cfg, edges = self.config.grid, self.grid.z_edges
-        reach = (cfg.max_range if cfg.kind == "polar" else cfg.extent_xy) + MARGIN_M
+        reach = map_reach(cfg)
         x, y, z = (np.asarray(points[:, k], dtype=np.float64) for k in range(3))
         ok = (np.abs(x) < reach) & (np.abs(y) < reach) & (z >= edges[0]) & (z < edges[-1])
         x, y, z = x[ok], y[ok], z[ok]

@@ -62,8 +62,9 @@ def map_reach(grid: VoxelGridConfig) -> float:
 def view_table(grid: VoxelGridConfig, offsets: tuple[tuple[float, float], ...]) -> np.ndarray:
     """(columns, len(offsets)) the voxel within a layer of every map column from every
     viewpoint (x, y), -1 outside the grid; int16 when the layer's voxels fit."""
-    side = map_side(map_reach(grid), CELL_M)
-    centres = column_centres(side, CELL_M, map_reach(grid))
+    reach = map_reach(grid)
+    side = map_side(reach, CELL_M)
+    centres = column_centres(side, CELL_M, reach)
     per_layer = grid.n_voxels // grid.n_layers
     table = np.empty((side * side, len(offsets)), np.int16 if per_layer < 2**15 else np.int32)
     if grid.kind == "polar":
