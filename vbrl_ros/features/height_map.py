@@ -12,7 +12,7 @@ Voxel numbering is the grids' own (:mod:`vbrl_ros.grids`); polar bins use the po
 grid's exact angular-bin rule, so a map cell lands in the voxel the grid assigns its
 centre to. Which voxel of a layer a map column falls in from a viewpoint
 (:func:`polar_column_voxels`, :func:`cartesian_column_voxels`) depends only on the
-column, not on the scan: :mod:`.view_table` computes it once for every column.
+column, not on the scan: :func:`.height_views.view_table` computes it once for every column.
 """
 
 from __future__ import annotations
