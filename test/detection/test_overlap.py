@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vbrl_ros.detection.overlap import MIN_CONSTRAINT, agreement
+from vbrl_ros.detection.overlap import MIN_CONSTRAINT, MIN_FACING_AREA_M2, agreement, is_constrained
 
 
 def no_ground(points: np.ndarray) -> np.ndarray:
@@ -73,6 +73,40 @@ def test_two_parallel_walls_leave_their_axis_unconstrained():
     corridor = np.c_[rng.uniform(-30, 30, n), np.where(rng.random(n) < 0.5, -2.0, 2.0), rng.uniform(0, 3, n)]
     found = agreement(corridor, corridor + rng.normal(0, 0.05, corridor.shape), np.eye(4), 1.0, no_ground)
     assert found.overlap > 0.5 and found.constraint < MIN_CONSTRAINT / 2
+    assert found.facing_area < MIN_FACING_AREA_M2 / 4 and not is_constrained(found.constraint, found.facing_area)
+
+
+def street_ahead(rng: np.random.Generator, wall_width: float, points_per_m2: float) -> np.ndarray:
+    """What a forward-looking sensor sees down a street: two 200 m facades 12 m apart and,
+    40 m ahead, a wall ``wall_width`` wide facing it; all 3 m high."""
+    n_facade, n_wall = int(2 * 200 * 3 * points_per_m2), int(wall_width * 3 * points_per_m2)
+    facades = np.c_[rng.uniform(0, 200, n_facade), np.where(rng.random(n_facade) < 0.5, -6.0, 6.0),
+                    rng.uniform(0, 3, n_facade)]
+    wall = np.c_[np.full(n_wall, 40.0), rng.uniform(-wall_width / 2, wall_width / 2, n_wall), rng.uniform(0, 3, n_wall)]
+    return np.concatenate([facades, wall])
+
+
+def test_a_wall_ahead_fixes_a_street_seen_forwards_however_many_facade_points_there_are():
+    # thousands of facade points beside the sensor, 72 m^2 of wall ahead: a small ratio, yet
+    # the position along the street is fixed
+    rng = np.random.default_rng(6)
+    found = agreement(street_ahead(rng, 24.0, 4.0), street_ahead(rng, 24.0, 4.0), np.eye(4), 1.0, no_ground)
+    assert found.constraint < MIN_CONSTRAINT
+    assert found.facing_area > MIN_FACING_AREA_M2 and is_constrained(found.constraint, found.facing_area)
+
+
+def test_a_post_ahead_does_not_fix_a_street():
+    rng = np.random.default_rng(7)
+    found = agreement(street_ahead(rng, 1.0, 4.0), street_ahead(rng, 1.0, 4.0), np.eye(4), 1.0, no_ground)
+    assert found.facing_area < MIN_FACING_AREA_M2 / 2 and not is_constrained(found.constraint, found.facing_area)
+
+
+def test_the_facing_area_is_the_surface_not_the_sensor_density():
+    # once every voxel of the wall holds points, four times as many add nothing
+    rng = np.random.default_rng(8)
+    sparse, dense = (agreement(street_ahead(rng, 24.0, d), street_ahead(rng, 24.0, d), np.eye(4), 1.0,
+                               no_ground).facing_area for d in (4.0, 16.0))
+    assert 0.75 < dense / sparse < 1.33
 
 
 def test_ground_is_left_out_and_too_little_structure_scores_zero():

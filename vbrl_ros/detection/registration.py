@@ -39,8 +39,8 @@ Conventions
   as independent, which sampling-induced (not noise-induced) residuals are
   not: on the test scenes the true error was ~3-5x the reported standard
   deviation, and degenerate places (corridors) are worse. A lower bound.
-* ``fitness`` is the two clouds' structure overlap after alignment and
-  ``constraint`` how well their surfaces fix the horizontal position
+* ``fitness`` is the two clouds' structure overlap after alignment, ``constraint`` and
+  ``facing_area`` how well their surfaces fix the horizontal position
   (:mod:`vbrl_ros.detection.overlap`, which says why); :meth:`Verification.rejection`
   is the acceptance rule. ``n_inliers`` / ``n_query_points`` is KISS-ICP's own inlier
   fraction at ``max_correspondence_distance``, over structure (non-ground) points.
@@ -56,7 +56,7 @@ from kiss_icp.mapping import VoxelHashMap
 from kiss_icp.registration import Registration
 
 from vbrl_ros.detection.coarse_alignment import MAX_SHIFT_M
-from vbrl_ros.detection.overlap import MIN_CONSTRAINT, agreement_of
+from vbrl_ros.detection.overlap import agreement_of, is_constrained
 from vbrl_ros.detection.pose_covariance import inlier_statistics
 from vbrl_ros.detection.prepared_cloud import MAX_POINT_RANGE_M, PreparedCloud, thinned
 
@@ -97,12 +97,13 @@ class Verification:
     n_query_points: int = 0  # downsampled query structure points the inliers are counted over
     n_inliers: int = 0
     constraint: float = 0.0  # in [0, 1]; 0: some horizontal direction is unconstrained
+    facing_area: float = 0.0  # m^2 of planar surface facing along the weakest horizontal direction
 
     def rejection(self, min_fitness: float) -> str | None:
         """Why this registration is not a loop closure (None: it is one)."""
         if not self.converged:
             return "not converged"
-        if self.constraint < MIN_CONSTRAINT:
+        if not is_constrained(self.constraint, self.facing_area):
             return "degenerate"
         if self.fitness < min_fitness:
             return "low fitness"
@@ -261,6 +262,7 @@ class QueryVerifier:
             n_query_points=scored,
             n_inliers=n_in,
             constraint=evidence.constraint,
+            facing_area=evidence.facing_area,
         )
 
 
