@@ -179,6 +179,9 @@ class FeatureConfig:
     ``mirror_blind_wedges`` also hides the mirror image of every wedge the sensor did not
     see (:mod:`vbrl_ros.features.blind_wedges`), so reversed revisits of a partly blind
     sensor compare the same directions; height-map modalities only.
+    ``drop_weather_clutter`` takes lone points in the air near the sensor (returns from rain,
+    snow or dust) out of the height map (:mod:`vbrl_ros.features.weather_clutter`); it
+    changes the height-map modalities only.
 
     Each voxel's points are rasterised on its XY, XZ and YZ faces into
     ``raster_size`` x ``raster_size`` snapshots (point counts scaled to a
@@ -195,6 +198,7 @@ class FeatureConfig:
     modalities: tuple[str, ...] = PAPER_MODALITIES
     normalise: bool = False
     mirror_blind_wedges: bool = False
+    drop_weather_clutter: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "modalities", tuple(self.modalities))
@@ -216,6 +220,13 @@ class FeatureConfig:
             "features.mirror_blind_wedges",
             f"must be true or false, and true only with height-map modalities "
             f"({', '.join(HEIGHT_MAP_MODALITIES)}), got {self.mirror_blind_wedges!r}",
+        )
+        _require(
+            isinstance(self.drop_weather_clutter, bool)
+            and (not self.drop_weather_clutter or bool(set(self.modalities) & set(HEIGHT_MAP_MODALITIES))),
+            "features.drop_weather_clutter",
+            f"must be true or false, and true only with a height-map modality "
+            f"({', '.join(HEIGHT_MAP_MODALITIES)}), got {self.drop_weather_clutter!r}",
         )
         _require(
             # a power of two: voxelization splits sub-cells with bit shifts,
@@ -254,6 +265,8 @@ class FeatureConfig:
             del out["normalise"]
         if not self.mirror_blind_wedges:
             del out["mirror_blind_wedges"]
+        if not self.drop_weather_clutter:
+            del out["drop_weather_clutter"]
         return out
 
     @property

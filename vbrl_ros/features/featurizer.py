@@ -37,6 +37,7 @@ from vbrl_ros.features.height_map import CELL_M
 from vbrl_ros.features.height_views import HeightMapModalities, map_reach
 from vbrl_ros.features.hog import hog_batch
 from vbrl_ros.features.kernels import accumulate_polar_voxels, accumulate_voxels
+from vbrl_ros.features.weather_clutter import drop_lone_tops
 from vbrl_ros.grids.ground_frame import GroundFrame, ground_frame
 from vbrl_ros.grids.kinds import make_grid
 
@@ -290,6 +291,9 @@ class Featurizer:
         column = (layer * side + iy) * side + ix
         top = np.full(side * side * cfg.n_layers, -1.0)
         np.maximum.at(top, column, z - edges[layer])
+        if self.config.features.drop_weather_clutter:
+            top = drop_lone_tops(top, _second_highest(column, z - edges[layer], len(top)), side, cfg.n_layers,
+                                 CELL_M, reach)
         cells = np.flatnonzero(top >= 0)
         rest = cells % (side * side)
         centres = np.column_stack([(rest % side + 0.5) * CELL_M - reach, (rest // side + 0.5) * CELL_M - reach,
@@ -360,6 +364,18 @@ def _as_points(points: np.ndarray) -> np.ndarray:
     if points.dtype not in (np.float32, np.float64):
         points = points.astype(np.float64)
     return points
+
+
+def _second_highest(column: np.ndarray, height: np.ndarray, n_columns: int) -> np.ndarray:
+    """(n_columns,) each column's next-highest ``height`` (-1: fewer than two points)."""
+    order = np.lexsort((-height, column))
+    column, height = column[order], height[order]
+    second = np.full(n_columns, -1.0)
+    has_two = column[1:] == column[:-1]
+    first_of_column = np.r_[True, column[1:] != column[:-1]][:-1]
+    at = first_of_column & has_two  # a column's highest, followed by its next-highest
+    second[column[1:][at]] = height[1:][at]
+    return second
 
 
 def _histogram(index: np.ndarray, length: int) -> np.ndarray:

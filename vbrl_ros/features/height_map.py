@@ -21,6 +21,7 @@ import numpy as np
 from numba import njit
 
 from vbrl_ros.features.kernels import angular_bin
+from vbrl_ros.features.weather_clutter import drop_lone_tops
 
 CELL_M = 0.2  # well below any voxel, and ~10k-30k occupied cells for a 120k-point scan
 MARGIN_M = 4.0  # the map reaches this far beyond the grid, for shifted viewpoints
@@ -38,7 +39,7 @@ def _column_centre(column, side, cell, reach):
 
 
 @njit(cache=True, nogil=True)
-def height_cells(points, rotation, lift, reach, cell, z_edges):
+def height_cells(points, rotation, lift, reach, cell, z_edges, drop_clutter=False):
     """The scan as a height map: ``(cells, 2)`` x, y of each occupied column centre,
     ``(cells,)`` its layer-relative top height, ``(cells,)`` its layer and ``(cells,)`` its
     column (``iy * side + ix``, see :func:`map_side`).
@@ -46,7 +47,8 @@ def height_cells(points, rotation, lift, reach, cell, z_edges):
     Points are taken into the grid frame on the fly, ``R p + (0, 0, lift)`` (the scan's
     ground frame; identity and 0 for points already in it). Columns are ``cell`` metres
     wide, within ``reach`` metres of the origin in x and y; points outside the layers
-    (and non-finite ones) are dropped.
+    (and non-finite ones) are dropped. ``drop_clutter``: lone tops near the sensor are taken
+    for rain or snow (:mod:`.weather_clutter`) and each such column keeps its next-highest point.
     """
     layers = z_edges.shape[0] - 1
     side = int(2.0 * reach / cell) + 1
@@ -56,6 +58,7 @@ def height_cells(points, rotation, lift, reach, cell, z_edges):
     # points in no particular order, which the CPU mispredicts. Dropped points are
     # written to a spare last entry instead, and the top is kept with max().
     top = np.full(columns + 1, -1.0)
+    second = np.full(columns + 1, -1.0)  # each column's next-highest point
     R = rotation
     for i in range(points.shape[0]):
         px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
@@ -73,7 +76,12 @@ def height_cells(points, rotation, lift, reach, cell, z_edges):
         column = column if kept else 0.0
         c = (layer * side + int(row)) * side + int(column)
         c = c if kept else columns
-        top[c] = max(z - z_edges[layer], top[c])
+        h = z - z_edges[layer]
+        t = top[c]
+        second[c] = max(second[c], min(t, h))
+        top[c] = max(h, t)
+    if drop_clutter:
+        top = drop_lone_tops(top, second, side, layers, cell, reach)
     n = 0
     for c in range(columns):
         if top[c] >= 0.0:

@@ -121,7 +121,7 @@ class HeightMapModalities:
         """The height map of (N, 3+) points, taken into ``frame`` (default: already in it)."""
         frame = frame or GroundFrame.identity()
         cells = HeightCells(*height_cells(points, frame.rotation, float(frame.height), self.reach, CELL_M,
-                                          self.z_edges))
+                                          self.z_edges, self.config.features.drop_weather_clutter))
         if self.config.features.mirror_blind_wedges:
             keep = hide_mirrored_wedges(cells.xy, column_azimuth_bins(self.reach)[cells.column])
             if not keep.all():  # most scans see all round: nothing to copy
