@@ -1,6 +1,7 @@
 """``vbrl demo``: the main job on built-in simulated data, in one command.
 
-1. simulate a training town in two long-term scenarios and train W on it;
+1. simulate a training town in two long-term scenarios and train W on it, as the node's
+   built-in model is trained (the recognition descriptor, place targets);
 2. simulate two sessions (summer, then winter) of another town as bags;
 3. start ``vbrl_node`` with the trained model, replay the summer bag into it;
 4. restart the node on its saved keyframe database, replay the winter bag;
@@ -17,18 +18,22 @@ import argparse
 import time
 from pathlib import Path
 
-from vbrl_ros.config import VBRLConfig
 from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
 from vbrl_ros.tools.options import plain_text
-from vbrl_ros.training.builtin_model import SimulatedTrainingSpec, build_default_model, simulated_training_data
-from vbrl_ros.training.fit import fit_model
-from vbrl_ros.training.report import importance_report
-from vbrl_ros.training.threshold import recommend_threshold
-
-TRAINING = SimulatedTrainingSpec(
-    scenarios=("summer_clear", "winter_snow"), town_seed=1, run_seeds=(11, 12),
-    loops=1, keyframe_spacing_m=4.0, beams=32, columns=900,
+from vbrl_ros.training.builtin_model import (
+    SimulatedTown,
+    build_default_model,
+    fit_recognition_model,
+    simulated_recognition_data,
 )
+from vbrl_ros.training.presets import recognition_config
+from vbrl_ros.training.report import importance_report
+
+#: The training town driven in both seasons of the sessions; the sessions are another town.
+#: (The paper's own setting, the Cartesian grid on scenario targets, let the node find .65-.67
+#: of the winter revisits, this .87: docs/results.md.)
+TRAINING_TOWNS = tuple(SimulatedTown(1, 1.8, 32, scenario=scenario, run_seed=seed)
+                       for scenario, seed in (("summer_clear", 11), ("winter_snow", 12)))
 SESSIONS = (("summer_clear", 21), ("winter_snow", 22))
 SESSION_TOWN_SEED = 4
 SPACING_M = 2.0
@@ -50,18 +55,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def train(out_dir: Path, progress: bool) -> Path:
-    print(f"[1/4] training W on town {TRAINING.town_seed} ({', '.join(TRAINING.scenarios)}, "
-          f"{TRAINING.beams}-beam LiDAR, a keyframe every {TRAINING.keyframe_spacing_m:g} m)")
-    config = VBRLConfig()
-    descriptors, labels, positions, index = simulated_training_data(TRAINING, config, progress)
-    result = fit_model(descriptors, labels, list(TRAINING.scenarios), config,
-                       lambda1=TRAINING.lambda1, lambda2=TRAINING.lambda2)
-    threshold = recommend_threshold(result.model, descriptors, labels, positions, labels, index,
-                                    protocols=("P2", "P1"))
-    if threshold is not None:
-        result.model.metadata["distance_threshold"] = threshold["distance_threshold"]
+    town = TRAINING_TOWNS[0]
+    print(f"[1/4] training W on town {town.town_seed} ({', '.join(t.scenario for t in TRAINING_TOWNS)}, "
+          f"{town.beams}-beam LiDAR, a keyframe every 2 m; recognition descriptor, place targets)")
+    parts = simulated_recognition_data(TRAINING_TOWNS, recognition_config(), progress)
+    result = fit_recognition_model(parts, [])
     path = result.model.save(out_dir / "model.npz")
-    print(f"      {len(descriptors)} keyframes, {result.solver.path} solver, "
+    print(f"      {sum(len(p[1]) for p in parts)} keyframes, {result.solver.path} solver, "
           f"{result.solver.iterations} iterations, {result.seconds:.1f} s -> {path}")
     print("      " + importance_report(result.model, top_voxels=3).replace("\n", "\n      "))
     return path

@@ -6,8 +6,9 @@ Rebuild it with::
 
 which simulates :data:`BUILTIN_TOWNS`, reads the recordings (the shipped model: the four
 in the optional data folder, see README), trains W and overwrites the file
-:mod:`vbrl_ros.model.builtin` loads. Deterministic for the seeds given here.
-:class:`SimulatedTrainingSpec` is the demo's own training set (the paper's setting).
+:mod:`vbrl_ros.model.builtin` loads. Deterministic for the seeds given here. The demo
+trains its own model the same way on one town (:func:`simulated_recognition_data`,
+:func:`fit_recognition_model`).
 """
 
 from __future__ import annotations
@@ -22,42 +23,6 @@ from vbrl_ros.features.parallel import featurize
 from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
 from vbrl_ros.training.fit import TrainingResult, fit_model
 from vbrl_ros.training.presets import RECOGNITION_TRANSLATION_SEARCH_M, recognition_config
-
-
-@dataclass(frozen=True)
-class SimulatedTrainingSpec:
-    """What the default model is trained on (the town of ``town_seed``; tests use other towns)."""
-
-    scenarios: tuple[str, ...] = ("summer_clear", "winter_snow", "autumn_fog")
-    town_seed: int = 0
-    run_seeds: tuple[int, ...] = (101, 102, 103)
-    loops: int = 2
-    keyframe_spacing_m: float = 4.0
-    beams: int = 64
-    columns: int = 1800
-    lambda1: float = 10.0
-    lambda2: float = 0.1
-
-
-def simulated_training_data(
-    spec: SimulatedTrainingSpec, config: VBRLConfig, progress: bool = True
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(descriptors, scenario labels, positions, keyframe index in its run) of every keyframe."""
-    from vbrl_ros.simulator import LidarConfig, RouteConfig, generate_town, make_route, simulate_run
-
-    town = generate_town(seed=spec.town_seed)
-    route = make_route(town, RouteConfig(loops=spec.loops, spacing_m=spec.keyframe_spacing_m))
-    lidar = LidarConfig(beams=spec.beams, columns=spec.columns)
-    rows, labels, positions, indices = [], [], [], []
-    for k, (name, seed) in enumerate(zip(spec.scenarios, spec.run_seeds)):
-        run = simulate_run(town, route, lidar, name, seed=seed)
-        rows.append(featurize((scan.points for scan in run), config, total=len(run),
-                              progress=progress, description=f"simulating {name}"))
-        labels.append(np.full(len(run), k))
-        positions.append(run.poses[:, :3, 3])
-        indices.append(np.arange(len(run)))
-    return (np.concatenate(rows), np.concatenate(labels), np.concatenate(positions),
-            np.concatenate(indices))
 
 
 @dataclass(frozen=True)
