@@ -58,7 +58,8 @@ def height_cells(points, rotation, lift, reach, cell, z_edges, drop_clutter=Fals
     # points in no particular order, which the CPU mispredicts. Dropped points are
     # written to a spare last entry instead, and the top is kept with max().
     top = np.full(columns + 1, -1.0)
-    second = np.full(columns + 1, -1.0)  # each column's next-highest point
+    # each column's next-highest point, which only dropping clutter reads
+    second = np.full(columns + 1 if drop_clutter else 1, -1.0)
     R = rotation
     for i in range(points.shape[0]):
         px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
@@ -78,7 +79,8 @@ def height_cells(points, rotation, lift, reach, cell, z_edges, drop_clutter=Fals
         c = c if kept else columns
         h = z - z_edges[layer]
         t = top[c]
-        second[c] = max(second[c], min(t, h))
+        if drop_clutter:  # the same for every point: predicted
+            second[c] = max(second[c], min(t, h))
         top[c] = max(h, t)
     if drop_clutter:
         top = drop_lone_tops(top, second, side, layers, cell, reach)
