@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from vbrl_ros.features.blind_wedges import azimuth_bins
+
 #: Azimuth bins around the sensor; a point is judged against its bin and the two beside it,
 #: so a sparse (1 m thinned) cloud's far gaps between points do not read as blind directions.
 AZIMUTH_BINS = 72
@@ -31,15 +33,11 @@ class Horizon:
     def __init__(self, points: np.ndarray, margin: float) -> None:
         farthest = np.full(AZIMUTH_BINS, -np.inf)
         if len(points):
-            np.maximum.at(farthest, _bins(points), np.hypot(points[:, 0], points[:, 1]))
+            np.maximum.at(farthest, azimuth_bins(points, AZIMUTH_BINS), np.hypot(points[:, 0], points[:, 1]))
         # a bin reaches as far as it or either neighbour does
         self.reach = np.max([np.roll(farthest, -1), farthest, np.roll(farthest, 1)], axis=0) + margin
 
     def sees(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool: each point (this cloud's frame) lies within what this sensor saw."""
-        return np.hypot(points[:, 0], points[:, 1]) <= self.reach[_bins(points)]
+        return np.hypot(points[:, 0], points[:, 1]) <= self.reach[azimuth_bins(points, AZIMUTH_BINS)]
 
-
-def _bins(points: np.ndarray) -> np.ndarray:
-    azimuth = np.arctan2(points[:, 1], points[:, 0])
-    return np.minimum((azimuth + np.pi) * (AZIMUTH_BINS / (2 * np.pi)), AZIMUTH_BINS - 1).astype(np.int64)

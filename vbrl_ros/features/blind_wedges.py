@@ -27,10 +27,10 @@ MIN_SEEN_FRACTION = 0.6  # below this the sensor is forward-looking, not partly 
 BINS = round(360.0 / BIN_DEG)
 
 
-def azimuth_bins(xy: np.ndarray) -> np.ndarray:
-    """(n,) int64: the azimuth bin of each (x, y)."""
+def azimuth_bins(xy: np.ndarray, count: int = BINS) -> np.ndarray:
+    """(n,) int64: the azimuth bin of each (x, y), of ``count`` round the circle from -180°."""
     azimuth = np.arctan2(xy[:, 1], xy[:, 0])
-    return (np.floor((azimuth + np.pi) * (BINS / (2.0 * np.pi))).astype(np.int64)) % BINS
+    return (np.floor((azimuth + np.pi) * (count / (2.0 * np.pi))).astype(np.int64)) % count
 
 
 def blind_bins(xy: np.ndarray, bins: np.ndarray | None = None) -> np.ndarray:
