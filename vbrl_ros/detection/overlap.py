@@ -24,11 +24,12 @@ better (measured on real recordings, candidates of the recogniser and of Scan Co
   such false closures, 0.2-0.6 on true ones.
 * **facing area** — the same weakest direction's information in absolute terms: how many
   square metres of surface face along it, each weighed by how planar it is (inliers counted
-  once per voxel: a sensor that samples every voxel of a wall counts its area, not its points). A ratio cannot tell a corridor from a street seen
-  forwards: a forward-looking sensor sees thousands of facade points beside it and the
-  few dozen square metres of a crossing or a far wall ahead, ratio 0.02-0.1, and the position
-  along the street is fixed all the same (simulated: such registrations were 0.05-1 m off).
-  A registration is constrained by either test.
+  once per voxel: a sensor that samples every voxel of a wall counts its area, not its
+  points). A ratio cannot tell a corridor from a street seen forwards: a forward-looking
+  sensor sees thousands of facade points beside it and the few dozen square metres of a
+  crossing or a far wall ahead, ratio 0.02-0.1, and the position along the street is fixed
+  all the same (simulated: such registrations were at most 1 m off). A registration is
+  constrained by either test.
 
 Each cloud's ground is told in its own frame and its KD-tree is built there once
 (:class:`~vbrl_ros.detection.prepared_cloud.PreparedCloud`); the other cloud's points are
