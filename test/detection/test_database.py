@@ -14,6 +14,7 @@ import vbrl_ros.detection.database as database_module
 from vbrl_ros.detection.database import METADATA_BYTES_PER_KEYFRAME, KeyframeDatabase
 from vbrl_ros.detection.database_file import DATABASE_FORMAT_VERSION, DatabaseFileError
 from vbrl_ros.index.parameters import IndexParameters
+from vbrl_ros.index.sequence_matching import SequenceHistory
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
 D = 40  # full descriptor length of the toy model
@@ -455,3 +456,35 @@ def test_recency_exclusion_is_exact_in_a_large_database():
         assert all(c.session == "B" or c.stamp <= 2899.0 for c in found)
         assert (found[0].index == i) == (i == 2997)  # the own recent past is never returned
         assert found[0] == db.query(x[i] + 0.01, exact=True, **kwargs)[0]
+
+
+def test_a_sequence_ranks_a_revisited_run_above_a_lookalike_of_the_last_keyframe_alone():
+    db, full = make_db(30)
+    rng = np.random.default_rng(7)
+    path = [12, 11, 10, 9]  # keyframes 12..9 revisited the other way round
+    queries = [SCORER.compact(full[j] + rng.normal(0, 0.3, D).astype(np.float32)) for j in path]
+    lookalike = db.add(queries[-1] + rng.normal(0, 0.05, len(queries[-1])).astype(np.float32), 30.0, "s0")
+    zero = np.zeros((1, 2))
+    alone = db.query_views(queries[-1][None], zero, top_k=3)
+    assert alone[0].keyframe_id == lookalike
+
+    history = SequenceHistory(4)
+    for query in queries:
+        found = db.query_views(query[None], zero, top_k=3, sequence=history)
+    assert found[0].keyframe_id == 9
+    # the reported distance is the sequence's: the last keyframe's own distance to 9 counted
+    # twice, and each earlier one's to the nearest of 10, 11, 12 (one keyframe of slack)
+    def distance(query, row):
+        return float(np.abs(db.descriptor(row) - query) @ SCORER.active_weights)
+
+    earlier = [min(distance(queries[3 - step], 9 + step + s) for s in (-1, 0, 1)) for step in (1, 2, 3)]
+    assert found[0].distance == pytest.approx((2 * distance(queries[-1], 9) + sum(earlier)) / 5, rel=1e-5)
+    assert len(history) == 3
+
+
+def test_a_keyframe_against_an_empty_database_still_takes_its_place_in_the_sequence():
+    db = KeyframeDatabase(SCORER, model_id="model-A")
+    history = SequenceHistory(3)
+    assert db.query_views(np.zeros((1, SCORER.active_rows.size), np.float32), np.zeros((1, 2)),
+                          sequence=history) == []
+    assert len(history) == 1

@@ -32,6 +32,7 @@ from vbrl_ros.detection.database_file import MAX_KEYFRAME_ID, SavedDatabase, rea
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.keyframe_store import grown
 from vbrl_ros.index.parameters import IndexParameters
+from vbrl_ros.index.sequence_matching import SequenceHistory
 from vbrl_ros.index.translation_search import search_views
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
@@ -284,11 +285,17 @@ class KeyframeDatabase:
         stamp: float | None = None,
         exclude_recent_s: float = 0.0,
         exact: bool = False,
+        sequence: SequenceHistory | None = None,
     ) -> list[Candidate]:
         """:meth:`query` for a query described from several viewpoints ``offsets`` (V, 2), the
-        first the sensor itself (translation search, :mod:`vbrl_ros.index.translation_search`)."""
+        first the sensor itself (translation search, :mod:`vbrl_ros.index.translation_search`).
+
+        ``sequence``: the stream's earlier keyframes; candidates are then ranked (and their
+        ``distance`` is) the sequence distance of :mod:`vbrl_ros.index.sequence_matching`."""
         views = np.stack([self.index.check(v) for v in np.asarray(views_compact)])
         if top_k <= 0 or self._size == 0:
+            if sequence is not None:  # this keyframe still takes its place in the sequence
+                sequence.rescore(np.zeros(0, np.int64), np.zeros(0))
             return []
         allowed = None
         if session is not None and stamp is not None:
@@ -298,7 +305,9 @@ class KeyframeDatabase:
                     self._stamps[: self._size] > float(stamp) - float(exclude_recent_s)
                 )
                 allowed = ~recent
-        found = search_views(self.index, views, offsets, top_k, allowed, exact=exact)
+        rescore = None if sequence is None else (
+            lambda rows, distances: sequence.rescore(self._keyframe_ids[rows], distances))
+        found = search_views(self.index, views, offsets, top_k, allowed, exact=exact, rescore=rescore)
         return [
             Candidate(
                 index=int(i),

@@ -23,6 +23,7 @@ from vbrl_ros.detection.registration import (
     downsample_for_storage,
 )
 from vbrl_ros.detection.settings import DetectorSettings
+from vbrl_ros.index.sequence_matching import SequenceHistory
 from vbrl_ros.index.translation_search import view_offsets
 from vbrl_ros.model.model_file import VBRLModel
 
@@ -97,6 +98,7 @@ class LoopClosureDetector:
         self.view_offsets = view_offsets(step)
         self.featurizer = model.featurizer()
         self.scorer = database.scorer
+        self.sequence = SequenceHistory(settings.sequence_length)
 
     def process_keyframe(
         self, points: np.ndarray, stamp: float, pose: np.ndarray | None = None,
@@ -119,7 +121,7 @@ class LoopClosureDetector:
         t1 = time.perf_counter()
         found = self.database.query_views(
             views, self.view_offsets, top_k=cfg.top_k, session=cfg.session, stamp=stamp,
-            exclude_recent_s=cfg.exclude_recent_s,
+            exclude_recent_s=cfg.exclude_recent_s, sequence=self.sequence,
         )
         # sorted by distance: the first beyond the threshold ends the list
         candidates = [c for c in found if c.distance <= self.distance_threshold]

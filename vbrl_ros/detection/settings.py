@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from vbrl_ros.index.sequence_matching import DEFAULT_LENGTH
+
 
 #: Verification voxel bounds: finer stores every point and no two scans' points lie that close (every
 #: closure would fail); coarser than 10 m leaves too few points to register.
@@ -33,6 +35,7 @@ class DetectorSettings:
     max_closure_distance: float = 5.0  # metres; verified closures between sensors farther apart are rejected
     verification_voxel: float = 1.0  # metres; stored clouds and registration use this voxel
     translation_search: float = -1.0  # metres between query viewpoints; 0: none; -1: the model's
+    sequence_length: int = DEFAULT_LENGTH  # keyframes a candidate is scored over; 1: this one alone
 
     def __post_init__(self) -> None:
         rules = {
@@ -49,6 +52,8 @@ class DetectorSettings:
             "translation_search": (self.translation_search == -1 or (_at_least(self.translation_search, 0)
                                                                       and self.translation_search <= 10),
                                    "-1 (the model's), 0 (off) or a step in (0, 10] metres"),
+            "sequence_length": (isinstance(self.sequence_length, int) and 1 <= self.sequence_length <= 20,
+                                "an integer in [1, 20]"),
         }
         for name, (ok, rule) in rules.items():
             if not ok:

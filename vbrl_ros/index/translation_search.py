@@ -12,6 +12,7 @@ geometric verification.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,24 +49,33 @@ class ViewSearchResult:
     offsets: np.ndarray  # (k, 2) metres
 
 
+#: Rescores a pool: (rows, their distances) -> the distances to rank them by.
+Rescore = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
 def search_views(index: KeyframeIndex, views: np.ndarray, offsets: np.ndarray, top_k: int,
-                 allowed: Allowed = None, *, pool: int = POOL, exact: bool = False) -> ViewSearchResult:
+                 allowed: Allowed = None, *, pool: int = POOL, exact: bool = False,
+                 rescore: Rescore | None = None) -> ViewSearchResult:
     """The ``top_k`` nearest keyframes to a query described from several viewpoints.
 
     ``views`` (V, d) compact descriptors of the query from ``offsets`` (V, 2), the first
     from the sensor itself; candidates come from the index (``exact``: brute force) for the
-    first view, the distance of each is the minimum over all views.
+    first view, the distance of each is the minimum over all views. ``rescore`` (e.g.
+    :meth:`~vbrl_ros.index.sequence_matching.SequenceHistory.rescore` by row) turns the
+    pool's distances into the ones the result is ranked by and reports.
     """
     views = np.asarray(views)
     offsets = np.asarray(offsets, dtype=np.float64).reshape(-1, 2)
     if views.ndim != 2 or len(views) != len(offsets) or len(views) == 0:
         raise ValueError(f"{len(views)} views for {len(offsets)} offsets")
-    wanted = top_k if len(views) == 1 else max(pool, top_k)
+    wanted = top_k if len(views) == 1 and rescore is None else max(pool, top_k)
     base = index.search_with_yaw(views[0], wanted, allowed, exact=exact)
     rows, n = base.indices, len(base.indices)
     if len(views) == 1 or n == 0:
-        return ViewSearchResult(base.indices[:top_k], base.distances[:top_k], base.shifts[:top_k],
-                                base.yaws[:top_k], np.zeros((min(n, top_k), 2)))
+        ranked = base.distances if rescore is None else np.asarray(rescore(rows, base.distances))
+        order = np.lexsort((rows, ranked))[:top_k]
+        return ViewSearchResult(rows[order], ranked[order].astype(np.float64), base.shifts[order],
+                                base.yaws[order], np.zeros((len(order), 2)))
     sectors = index.sectors
     radius = min(SHIFT_RADIUS, (sectors - 1) // 2)
     around = (base.shifts[:, None] + np.arange(-radius, radius + 1)) % sectors
@@ -77,10 +87,12 @@ def search_views(index: KeyframeIndex, views: np.ndarray, offsets: np.ndarray, t
         d = at[np.arange(n), k]
         better = d < distances
         distances[better], shifts[better], winner[better] = d[better], around[better, k[better]], v
-    order = np.lexsort((rows, distances))[:top_k]
+    ranked = distances.astype(np.float64) if rescore is None else np.asarray(rescore(rows, distances),
+                                                                              np.float64)
+    order = np.lexsort((rows, ranked))[:top_k]
     rows, distances, shifts, winner = rows[order], distances[order], shifts[order], winner[order]
     yaws = np.empty(len(rows))
-    for v in np.unique(winner):
+    for v in np.unique(winner):  # the yaw from the keyframe's own distances, not the ranking's
         at = winner == v
         yaws[at] = index.refined_yaws(views[v], rows[at], distances[at], shifts[at])
-    return ViewSearchResult(rows, distances.astype(np.float64), shifts, yaws, offsets[winner])
+    return ViewSearchResult(rows, ranked[order], shifts, yaws, offsets[winner])

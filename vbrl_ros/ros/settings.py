@@ -60,6 +60,9 @@ DESCRIPTIONS: dict[str, str] = {
     "verification_voxel": "voxel size in metres of the stored clouds and of their registration, 0.05 to 10.",
     "translation_search": "metres between the extra viewpoints a query is also described from. 0: off; "
                           "-1: the model's own (1.5 for the built-in model).",
+    "sequence_length": "keyframes a candidate is scored over: this one and the ones before it, against the "
+                       "candidate's neighbours driven either way. 1: this keyframe alone (keyframes that "
+                       "do not follow each other along a path).",
     "save_every": "keyframes between database saves. 0: only at shutdown or on ~/save_database.",
     "weight_prune": "descriptor rows weighing less than this times the largest row weight are neither "
                     "stored nor scored (learned sparsity; 0.0001 drops about 13 % of the built-in "
