@@ -175,6 +175,13 @@ def test_bad_inputs_exit_2_with_one_line(trained, tmp_path, monkeypatch, capsys)
     assert "4x4" in errors[2] and "--against" in errors[3]
 
 
+@pytest.mark.parametrize("length", ["0", "21"])
+def test_a_bad_sequence_length_is_named(trained, tmp_path, monkeypatch, capsys, length):
+    (summer, _), model = trained
+    assert vbrl(monkeypatch, "eval", summer, "--model", model, "--sequence-length", length, "--quiet") == 2
+    assert "--sequence-length" in capsys.readouterr().err.strip()
+
+
 @pytest.mark.parametrize("missing", ["query", "--against", "--model"])
 def test_a_missing_path_fails_before_any_source_is_described(missing, tmp_path, monkeypatch, capsys):
     import vbrl_ros.evaluation.methods as methods

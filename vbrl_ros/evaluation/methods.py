@@ -30,6 +30,7 @@ from vbrl_ros.evaluation.retrieval import DistancesFn
 from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.parameters import IndexParameters
+from vbrl_ros.index.sequence_matching import DEFAULT_LENGTH, SequenceHistory
 from vbrl_ros.index.translation_search import search_views, view_offsets
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.model.scoring import WeightedL1Scorer
@@ -188,9 +189,10 @@ class VBRLMethod:
     """
 
     def __init__(self, name: str, model: VBRLModel, *, exact: bool = False,
-                 prune: float = 0.0) -> None:
+                 prune: float = 0.0, sequence_length: int = DEFAULT_LENGTH) -> None:
         self.name, self.model, self.exact = name, model, exact
         self.scorer = model.scorer(prune=prune)
+        self.sequence_length = sequence_length
 
     def compact(self, raw: np.ndarray) -> np.ndarray:
         """Standardised active rows of raw descriptors (n, d): what the index stores."""
@@ -208,8 +210,15 @@ class VBRLMethod:
         T = Q if database is queries else self.compact(database.vbrl)
         index = self.new_index()
         raw_views, offsets = queries.views, queries.view_offsets
+        # rows of one source are its keyframes in order, so they serve as the sequence's ids
+        history = SequenceHistory(self.sequence_length)
+        rescore = None if self.sequence_length == 1 else history.rescore
+        previous = [-1]
 
         def fn(i: int, candidates: np.ndarray) -> np.ndarray:
+            for _ in range(previous[0] + 1, i):  # queries without a database still take their place
+                history.rescore(np.zeros(0, np.int64), np.zeros(0))
+            previous[0] = i
             # The drivers ask for database prefixes 0..limit-1 in increasing
             # limit (P1 grows it with i, P2 keeps it): insert lazily, like online.
             limit = int(candidates[-1]) + 1 if len(candidates) else 0
@@ -218,10 +227,10 @@ class VBRLMethod:
             allowed = None if len(index) == limit else np.arange(len(index)) < limit
             if raw_views is None:
                 found = search_views(index, Q[i][None], np.zeros((1, 2)), TOP_K_RETRIEVED, allowed,
-                                     exact=self.exact)
+                                     exact=self.exact, rescore=rescore)
             else:  # as the node: the query from every viewpoint
                 found = search_views(index, self.compact(raw_views[i]), offsets, TOP_K_RETRIEVED,
-                                     allowed, exact=self.exact)
+                                     allowed, exact=self.exact, rescore=rescore)
             out = np.full(len(candidates), np.inf)  # not retrieved: never a match
             out[found.indices] = found.distances
             return out

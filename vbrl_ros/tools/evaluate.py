@@ -68,6 +68,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--translation-search", type=float, default=None, metavar="M",
                         help="VBRL: also describe each query from viewpoints M metres around it, as "
                              "the node does (default: the model's own setting; 0: off)")
+    parser.add_argument("--sequence-length", type=int, default=DETECTOR_DEFAULTS.sequence_length, metavar="N",
+                        help="VBRL: score each candidate over this many keyframes, the query and the "
+                             "ones before it, as the node's sequence_length (default "
+                             f"{DETECTOR_DEFAULTS.sequence_length}; 1: each query alone)")
     parser.add_argument("--align", type=Path, metavar="T.txt",
                         help="P2: 4x4 transform, query world frame -> database world frame "
                              "(ground truth only)")
@@ -193,6 +197,8 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise ValueError("--align only applies to P2 (--against)")
     if args.translation_search is not None and not 0 <= args.translation_search <= 10:
         raise ValueError("--translation-search must be a step in [0, 10] metres")
+    if not 1 <= args.sequence_length <= 20:
+        raise ValueError("--sequence-length must be an integer in [1, 20]")
     evaluate_verified.check_arguments(args)
     for name, path in (("QUERY_SOURCE", args.query), ("--against", args.against), ("--model", args.model)):
         if path is not None and not Path(path).exists():  # before minutes of describing
@@ -231,8 +237,8 @@ def load(args: argparse.Namespace) -> Evaluation:
         if source.positions is None or not np.isfinite(source.positions).all():
             raise ValueError(f"{source.name}: every keyframe needs a pose for the ground truth "
                              "(--poses kiss-icp or file:poses.txt); matching itself never uses them")
-    methods: list[Any] = [VBRLMethod(name, m, exact=args.exact, prune=args.prune)
-                          for name, m in models.items()]
+    methods: list[Any] = [VBRLMethod(name, m, exact=args.exact, prune=args.prune,
+                                     sequence_length=args.sequence_length) for name, m in models.items()]
     if args.scan_context:
         methods.append(ScanContextMethod(sc_config, args.sc_candidates))
     return Evaluation("P1" if args.against is None else "P2", queries, database, models, methods,
@@ -286,7 +292,8 @@ def exact_agreement(args: argparse.Namespace, evaluation: Evaluation,
     # the reference: brute force over every keyframe and shift, nothing pruned
     reference_name = f"{FULL_NAME}, exact"
     exact = retrieve(args, evaluation, VBRLMethod(reference_name, evaluation.models[FULL_NAME],
-                                                  exact=True, prune=0.0))
+                                                  exact=True, prune=0.0,
+                                                  sequence_length=args.sequence_length))
     metrics[reference_name] = score(args, evaluation, exact)
     asked = full_results.database_limit > 0
     same = full_results.indices[asked, 0] == exact.indices[asked, 0]
