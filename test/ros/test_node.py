@@ -116,6 +116,32 @@ def test_ctrl_c_during_start_up_stops_without_a_traceback(delay):
     assert node.returncode == 0 and "Traceback" not in output, output
 
 
+def test_a_ctrl_c_before_rclpy_handles_signals_is_recorded_not_raised():
+    # raised inside some library's import, a KeyboardInterrupt can be swallowed there: the
+    # node then started and never stopped
+    from vbrl_ros.ros.node import record_interrupts
+
+    previous = signal.getsignal(signal.SIGINT)
+    try:
+        interrupted = record_interrupts()
+        signal.raise_signal(signal.SIGINT)
+        assert interrupted.is_set()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def test_a_recorded_ctrl_c_stops_the_start_before_rclpy_starts():
+    import threading
+
+    from vbrl_ros.ros.node import run
+
+    interrupted = threading.Event()
+    interrupted.set()
+    with pytest.raises(KeyboardInterrupt):
+        run(["vbrl_node", "--ros-args"], interrupted)
+    assert not rclpy.ok()  # the default context was never initialised
+
+
 def test_a_failed_final_save_is_one_line_and_exit_1(tmp_path):
     folder = tmp_path / "db"
     with ros_context() as context:

@@ -8,14 +8,17 @@ one later, not with a KeyboardInterrupt traceback from an import.
 from __future__ import annotations
 
 import os
+import signal
 import sys
+import threading
 
 from vbrl_ros.ros.startup import params_file_problem, rcl_error_line, usage
 
 
 def main(argv: list[str] | None = None) -> int:
+    interrupted = record_interrupts()
     try:
-        return run(list(sys.argv if argv is None else argv))
+        return run(list(sys.argv if argv is None else argv), interrupted)
     except KeyboardInterrupt:  # before rclpy's own signal handling is in place
         print("vbrl_node: interrupted", file=sys.stderr, flush=True)
         # CPython records a KeyboardInterrupt raised inside exec() (dataclasses run one per
@@ -25,8 +28,18 @@ def main(argv: list[str] | None = None) -> int:
         os._exit(0)
 
 
-def run(argv: list[str]) -> int:
-    """0 after a clean shutdown, 2 when the start is refused, 1 when the final save failed."""
+def record_interrupts() -> threading.Event:
+    """Until rclpy handles signals, a Ctrl-C is recorded, not raised: raised inside a library's
+    import it can be swallowed by that library, and the node would start and never stop."""
+    interrupted = threading.Event()
+    signal.signal(signal.SIGINT, lambda signum, frame: interrupted.set())
+    return interrupted
+
+
+def run(argv: list[str], interrupted: threading.Event | None = None) -> int:
+    """0 after a clean shutdown, 2 when the start is refused, 1 when the final save failed.
+    ``interrupted``: set by a Ctrl-C that came before rclpy's own handling."""
+    interrupted = interrupted or threading.Event()
     user_args = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
     if "-h" in user_args or "--help" in user_args:
         print(usage())
@@ -47,6 +60,8 @@ def run(argv: list[str]) -> int:
     from vbrl_ros.model.model_file import ModelFileError
     from vbrl_ros.ros.detector_node import VbrlNode
 
+    if interrupted.is_set():
+        raise KeyboardInterrupt
     try:
         rclpy.init(args=argv)
     except RuntimeError as error:  # rcl's RCLError, e.g. a parameter file that is not valid YAML
@@ -54,7 +69,11 @@ def run(argv: list[str]) -> int:
         return 2
     node, code = None, 0
     try:
+        if interrupted.is_set():  # between the check above and rclpy's handlers
+            raise KeyboardInterrupt
         node = VbrlNode()
+        if interrupted.is_set():
+            raise KeyboardInterrupt
         rclpy.spin(node)
     except (SettingsError, ModelFileError, DatabaseFileError) as error:
         print(f"vbrl_node: cannot start: {error}", file=sys.stderr)
