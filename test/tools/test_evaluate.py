@@ -175,11 +175,12 @@ def test_bad_inputs_exit_2_with_one_line(trained, tmp_path, monkeypatch, capsys)
     assert "4x4" in errors[2] and "--against" in errors[3]
 
 
-@pytest.mark.parametrize("length", ["0", "21"])
-def test_a_bad_sequence_length_is_named(trained, tmp_path, monkeypatch, capsys, length):
+@pytest.mark.parametrize("flag, length", [("--sequence-length", "0"), ("--sequence-length", "21"),
+                                          ("--sc-sequence-length", "0")])
+def test_a_bad_sequence_length_is_named(trained, tmp_path, monkeypatch, capsys, flag, length):
     (summer, _), model = trained
-    assert vbrl(monkeypatch, "eval", summer, "--model", model, "--sequence-length", length, "--quiet") == 2
-    assert "--sequence-length" in capsys.readouterr().err.strip()
+    assert vbrl(monkeypatch, "eval", summer, "--model", model, flag, length, "--quiet") == 2
+    assert capsys.readouterr().err.strip() == f"vbrl eval: error: {flag} must be an integer in [1, 20]"
 
 
 @pytest.mark.parametrize("missing", ["query", "--against", "--model"])

@@ -210,15 +210,11 @@ class VBRLMethod:
         T = Q if database is queries else self.compact(database.vbrl)
         index = self.new_index()
         raw_views, offsets = queries.views, queries.view_offsets
-        # rows of one source are its keyframes in order, so they serve as the sequence's ids
-        history = SequenceHistory(self.sequence_length)
-        rescore = None if self.sequence_length == 1 else history.rescore
-        previous = [-1]
+        stream = QueryStream(self.sequence_length)
+        rescore = None if self.sequence_length == 1 else stream.history.rescore
 
         def fn(i: int, candidates: np.ndarray) -> np.ndarray:
-            for _ in range(previous[0] + 1, i):  # queries without a database still take their place
-                history.rescore(np.zeros(0, np.int64), np.zeros(0))
-            previous[0] = i
+            stream.reach(i)
             # The drivers ask for database prefixes 0..limit-1 in increasing
             # limit (P1 grows it with i, P2 keeps it): insert lazily, like online.
             limit = int(candidates[-1]) + 1 if len(candidates) else 0
@@ -238,21 +234,39 @@ class VBRLMethod:
         return fn
 
 
+class QueryStream:
+    """The sequence history of a driver's queries, which come in order; rows of one source
+    are its keyframes in order, so they serve as the sequence's ids."""
+
+    def __init__(self, length: int) -> None:
+        self.history = SequenceHistory(length)
+        self._next = 0
+
+    def reach(self, i: int) -> None:
+        """Query ``i`` comes next: the queries skipped (no database yet) still take their place."""
+        for _ in range(self._next, i):
+            self.history.rescore(np.zeros(0, np.int64), np.zeros(0))
+        self._next = i + 1
+
+
 class ScanContextMethod:
     """Scan Context (Kim & Kim 2018): ring-key k-d tree prefilter, then the exact
     column-shift distance over all shifts on the ``num_candidates`` nearest ring keys.
-    Candidates the prefilter drops get distance inf (never retrieved)."""
+    Candidates the prefilter drops get distance inf (never retrieved). ``sequence_length``
+    > 1 ranks them with VBRL's sequence matching (its prefilter's candidates are the pool),
+    for a like-for-like comparison; 1 is Scan Context as published."""
 
     name = "Scan Context"
 
-    def __init__(self, config: ScanContextConfig, num_candidates: int = 10) -> None:
-        self.config, self.num_candidates = config, num_candidates
+    def __init__(self, config: ScanContextConfig, num_candidates: int = 10, sequence_length: int = 1) -> None:
+        self.config, self.num_candidates, self.sequence_length = config, num_candidates, sequence_length
 
     def distances_fn(self, queries: SourceDescriptors, database: SourceDescriptors) -> DistancesFn:
         db = ScanContextDatabase(self.config)
         for descriptor in database.scan_context:
             db.add(descriptor)
         Q = queries.scan_context
+        stream = QueryStream(self.sequence_length)
 
         def fn(i: int, candidates: np.ndarray) -> np.ndarray:
             out = np.full(len(candidates), np.inf)
@@ -260,6 +274,9 @@ class ScanContextMethod:
             limit = int(candidates.max()) + 1 if len(candidates) else 0
             idx, dist, _ = db.query_top_k(Q[i], k=self.num_candidates,
                                           num_candidates=self.num_candidates, max_index=limit)
+            if self.sequence_length > 1:
+                stream.reach(i)
+                dist = stream.history.rescore(idx, dist)
             out[idx] = dist
             return out
 

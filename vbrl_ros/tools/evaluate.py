@@ -105,6 +105,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--sc-max-range", type=float, default=80.0, help="Scan Context range, m (80)")
     parser.add_argument("--sc-candidates", type=int, default=10,
                         help="Scan Context: ring-key prefilter candidates (10)")
+    parser.add_argument("--sc-sequence-length", type=int, default=1, metavar="N",
+                        help="Scan Context: rank with VBRL's sequence matching over N keyframes, "
+                             "for a like-for-like comparison (default 1: Scan Context as published)")
     verify = parser.add_argument_group(
         "verified output", "--verify registers the full model's and Scan Context's top-k candidates "
         "with KISS-ICP as the node does and reports the verified closures beside retrieval: swept "
@@ -197,8 +200,10 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise ValueError("--align only applies to P2 (--against)")
     if args.translation_search is not None and not 0 <= args.translation_search <= 10:
         raise ValueError("--translation-search must be a step in [0, 10] metres")
-    if not 1 <= args.sequence_length <= 20:
-        raise ValueError("--sequence-length must be an integer in [1, 20]")
+    for flag, length in (("--sequence-length", args.sequence_length),
+                         ("--sc-sequence-length", args.sc_sequence_length)):
+        if not 1 <= length <= 20:
+            raise ValueError(f"{flag} must be an integer in [1, 20]")
     evaluate_verified.check_arguments(args)
     for name, path in (("QUERY_SOURCE", args.query), ("--against", args.against), ("--model", args.model)):
         if path is not None and not Path(path).exists():  # before minutes of describing
@@ -240,7 +245,7 @@ def load(args: argparse.Namespace) -> Evaluation:
     methods: list[Any] = [VBRLMethod(name, m, exact=args.exact, prune=args.prune,
                                      sequence_length=args.sequence_length) for name, m in models.items()]
     if args.scan_context:
-        methods.append(ScanContextMethod(sc_config, args.sc_candidates))
+        methods.append(ScanContextMethod(sc_config, args.sc_candidates, args.sc_sequence_length))
     return Evaluation("P1" if args.against is None else "P2", queries, database, models, methods,
                       notes, alignment, sorted({float(args.radius), *REPORT_RADII}))
 
