@@ -80,6 +80,7 @@ def model_with_text_weights(path: Path) -> Path:
     ("keyframe_distance:=-1.0", "parameter 'keyframe_distance' must be a positive number, got -1.0"),
     ("top_k:=abc", "parameter 'top_k' must be int, got str 'abc'"),
     ("min_fitness:=2.0", "parameter 'min_fitness' must be in [0, 1], got 2.0"),
+    ("sequence_length:=0", "parameter 'sequence_length' must be an integer in [1, 20], got 0"),
     ("verification_voxel:=1e-9", "parameter 'verification_voxel' must be in [0.05, 10.0] m, got 1e-09"),
     ("cloud_topics:=/velodyne_points", "unknown parameter 'cloud_topics' (did you mean 'cloud_topic'?); "
                                        "vbrl_node --help lists them"),
