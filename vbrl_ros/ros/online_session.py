@@ -105,7 +105,10 @@ def run_node_session(
             on_node_up(node.pid)
         player = subprocess.Popen(
             [sys.executable, "-m", "vbrl_ros.tools.replay", str(bag), "--rate", str(rate), "--quiet",
-             "--wait-for-subscribers", "1", "--wait-topics", "/points", "/odom", *replay_args],
+             "--wait-for-subscribers", "1", "--wait-topics", "/points", "/odom",
+             # discovery is not symmetric: a best-effort cloud sent as soon as the replay's
+             # writer has matched the node's reader can reach a reader not yet matched to it
+             "--delay", "0.5", *replay_args],
             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         )
         with SessionProgress(collector, bag.name, scans, progress) as bar:
