@@ -72,10 +72,10 @@ def search_views(index: KeyframeIndex, views: np.ndarray, offsets: np.ndarray, t
     base = index.search_with_yaw(views[0], wanted, allowed, exact=exact)
     rows, n = base.indices, len(base.indices)
     if len(views) == 1 or n == 0:
-        ranked = base.distances if rescore is None else np.asarray(rescore(rows, base.distances))
+        ranked = _ranked(rows, base.distances, rescore)
         order = np.lexsort((rows, ranked))[:top_k]
-        return ViewSearchResult(rows[order], ranked[order].astype(np.float64), base.shifts[order],
-                                base.yaws[order], np.zeros((len(order), 2)))
+        return ViewSearchResult(rows[order], ranked[order], base.shifts[order], base.yaws[order],
+                                np.zeros((len(order), 2)))
     sectors = index.sectors
     radius = min(SHIFT_RADIUS, (sectors - 1) // 2)
     around = (base.shifts[:, None] + np.arange(-radius, radius + 1)) % sectors
@@ -87,8 +87,7 @@ def search_views(index: KeyframeIndex, views: np.ndarray, offsets: np.ndarray, t
         d = at[np.arange(n), k]
         better = d < distances
         distances[better], shifts[better], winner[better] = d[better], around[better, k[better]], v
-    ranked = distances.astype(np.float64) if rescore is None else np.asarray(rescore(rows, distances),
-                                                                              np.float64)
+    ranked = _ranked(rows, distances, rescore)
     order = np.lexsort((rows, ranked))[:top_k]
     rows, distances, shifts, winner = rows[order], distances[order], shifts[order], winner[order]
     yaws = np.empty(len(rows))
@@ -96,3 +95,8 @@ def search_views(index: KeyframeIndex, views: np.ndarray, offsets: np.ndarray, t
         at = winner == v
         yaws[at] = index.refined_yaws(views[v], rows[at], distances[at], shifts[at])
     return ViewSearchResult(rows, ranked[order], shifts, yaws, offsets[winner])
+
+
+def _ranked(rows: np.ndarray, distances: np.ndarray, rescore: Rescore | None) -> np.ndarray:
+    """float64 distances the pool is ranked by: its own, or ``rescore``'s."""
+    return np.asarray(distances if rescore is None else rescore(rows, distances), np.float64)
