@@ -1,16 +1,20 @@
-"""Odometry poses are checked before they move anything; keyframes are spaced by travel or by time."""
+"""Odometry poses are checked before they move anything; keyframes are spaced by travel or by time;
+a keyframe gets the pose at its own stamp."""
 
 from __future__ import annotations
 
 import math
+import threading
+import time
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 import pytest
 
 pytest.importorskip("rclpy")
 from nav_msgs.msg import Odometry  # noqa: E402
 
-from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, pose_matrix  # noqa: E402
+from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, PoseHistory, pose_matrix  # noqa: E402
 
 
 def odometry(position=(0.0, 0.0, 0.0), quaternion=(0.0, 0.0, 0.0, 1.0)) -> Odometry:
@@ -77,3 +81,56 @@ def test_a_step_of_1e300_metres_is_still_a_finite_travel():
     spacing.mark(1.0)
     spacing.moved_to(at(1e300 + 0.5))
     assert not spacing.is_keyframe(2.0)  # travel restarted from 0, not inf or NaN
+
+
+def turned(x: float, yaw_deg: float) -> np.ndarray:
+    T = at(x)
+    T[:3, :3] = Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix()
+    return T
+
+
+def test_the_pose_between_two_odometry_stamps_is_interpolated():
+    history = PoseHistory()
+    history.add(10.0, turned(0.0, 170.0))
+    history.add(11.0, turned(2.0, -170.0))  # 20 degrees on, across +-180
+    pose, covered = history.at(10.25)
+    assert covered
+    np.testing.assert_allclose(pose[:3, 3], [0.5, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(pose[:3, :3], turned(0.0, 175.0)[:3, :3], atol=1e-12)
+    assert history.at(11.0) == (history.at(11.0)[0], True)
+
+
+def test_a_keyframe_waits_for_the_odometry_of_its_own_stamp():
+    """LiDAR odometry publishes a scan's pose after the scan: the keyframe must not take the
+    previous scan's pose."""
+    history = PoseHistory()
+    history.add(10.0, at(0.0))
+    later = threading.Timer(0.05, history.add, (10.2, at(2.0)))
+    later.start()
+    pose, covered = history.at(10.1, wait_s=2.0)
+    later.join()
+    assert covered and pose[0, 3] == pytest.approx(1.0)
+
+
+def test_without_odometry_at_the_stamp_the_newest_pose_is_used_and_said_so():
+    history = PoseHistory()
+    assert history.at(5.0, wait_s=0.01) == (None, False)
+    history.add(10.0, at(3.0))
+    start = time.monotonic()
+    pose, covered = history.at(10.1, wait_s=0.1)
+    assert not covered and pose[0, 3] == 3.0 and time.monotonic() - start >= 0.09
+    start = time.monotonic()
+    pose, covered = history.at(60.0, wait_s=5.0)  # odometry silent for 50 s: no wait
+    assert not covered and time.monotonic() - start < 1.0
+    pose, covered = history.at(9.0)  # before the history: its oldest pose
+    assert not covered and pose[0, 3] == 3.0
+
+
+def test_time_going_back_starts_the_history_afresh_and_old_poses_are_forgotten():
+    history = PoseHistory(span_s=10.0)
+    for stamp in range(100):
+        history.add(float(stamp), at(float(stamp)))
+    assert history.at(50.0) == (history.at(50.0)[0], False)  # older than the last 10 s
+    history.add(3.0, at(-7.0))  # a bag played again
+    pose, covered = history.at(3.0)
+    assert covered and pose[0, 3] == -7.0

@@ -56,7 +56,7 @@ from vbrl_ros.ros.cloud_intake import SequenceGaps, cloud_header
 from vbrl_ros.ros.messages import closures_message, lio_sam_message
 from vbrl_ros.ros.newest_queue import NewestQueue
 from vbrl_ros.ros.node_stats import NodeStats
-from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, pose_matrix
+from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, PoseHistory, pose_matrix
 from vbrl_ros.ros.outputs import diagnostics_status, keyframe_markers
 from vbrl_ros.ros.settings import (
     DESCRIPTIONS,
@@ -73,6 +73,9 @@ TOPIC_PARAMETERS = ("cloud_topic", "odom_topic", "loop_closure_topic", "lio_sam_
 KEYFRAME_QUEUE = 5
 #: Sensor-data QoS (best effort), with a queue of a second of a 10 Hz sensor instead of 5 messages:
 #: a cloud waiting there costs memory only until the callback takes it, a cloud pushed out is lost.
+#: How long a keyframe waits for odometry to reach its stamp (a LiDAR odometry publishes a scan's
+#: pose after the scan): three scans of a 10 Hz sensor. Beyond it the newest pose is used, counted.
+ODOMETRY_WAIT_S = 0.3
 CLOUD_QOS = QoSProfile(history=qos_profile_sensor_data.history, depth=10,
                        reliability=qos_profile_sensor_data.reliability,
                        durability=qos_profile_sensor_data.durability)
@@ -108,6 +111,7 @@ class VbrlNode(Node):
         self._retrievals: NewestQueue[tuple[Retrieval, float]] = NewestQueue(1)
         self._verifier = VerifierProcess(self.detector.settings) if s.detector.verify else None
         self._spacing = KeyframeSpacing(s.keyframe_distance, s.keyframe_interval)
+        self._pose_history = PoseHistory()
         self._gaps = SequenceGaps()
         self._edges: deque[tuple[int, int]] = deque(maxlen=10_000)
         self._keyframes_since_save = 0
@@ -215,6 +219,7 @@ class VbrlNode(Node):
             self.get_logger().warning(f"odometry skipped: {error}", throttle_duration_sec=5.0)
             return
         self._spacing.moved_to(pose)
+        self._pose_history.add(stamp_seconds(msg.header.stamp), pose)
 
     def _on_cloud(self, raw: bytes, info: dict) -> None:
         now = time.monotonic()
@@ -260,6 +265,10 @@ class VbrlNode(Node):
                 self.get_logger().error(f"keyframe skipped after an unexpected error: {error!r}")
 
     def _process(self, points: np.ndarray, stamp: float, pose: np.ndarray | None, arrived: float) -> None:
+        if pose is not None:  # odometry runs: the pose at the cloud's own stamp, not the newest
+            pose, covered = self._pose_history.at(stamp, ODOMETRY_WAIT_S)
+            if not covered:
+                self.stats.count("late_odometry")
         with self._db_lock:
             gravity = (gravity_rotation(pose) if self.settings.level_from_odometry and pose is not None
                        else None)

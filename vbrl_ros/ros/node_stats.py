@@ -37,6 +37,7 @@ class StatsSnapshot:
     failed_saves: int = 0
     odometry: int = 0
     bad_odometry: int = 0
+    late_odometry: int = 0  # keyframes stored with the newest pose: odometry had not reached their stamp
     input_rate_hz: float = 0.0
     # p50, p90, p99 from a cloud's arrival until its closures are decided (verified or not) ...
     latency_ms: tuple[float, float, float] = (float("nan"),) * 3

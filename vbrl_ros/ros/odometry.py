@@ -1,4 +1,5 @@
-"""Odometry for the node: poses from ``nav_msgs/Odometry``, checked, and keyframe spacing by travel.
+"""Odometry for the node: poses from ``nav_msgs/Odometry``, checked, keyframe spacing by travel,
+and the pose at a cloud's own stamp.
 
 A pose the node cannot use (a NaN or infinite component, a quaternion that is
 not a rotation) raises :class:`OdometryError`; the node counts and skips that
@@ -8,7 +9,10 @@ that spaces later keyframes.
 
 from __future__ import annotations
 
+import bisect
 import math
+import threading
+from collections import deque
 
 import numpy as np
 from nav_msgs.msg import Odometry
@@ -69,3 +73,62 @@ class KeyframeSpacing:
         """A valid scan became a keyframe: spacing now counts from it."""
         self._last_keyframe = (stamp, self.latest_pose)
         self._travel = 0.0
+
+
+class PoseHistory:
+    """The last ``span_s`` seconds of odometry, by stamp: the pose at a cloud's stamp, interpolated.
+
+    A LiDAR odometry publishes a scan's pose *after* the scan, so when a keyframe's cloud
+    arrives the newest pose is usually the previous scan's, up to a metre behind at speed:
+    submaps merged with it would be smeared. :meth:`at` waits (briefly) for odometry to reach
+    the stamp, then interpolates between the poses around it. Thread-safe: odometry is added on
+    the executor's thread and read on the worker's.
+    """
+
+    def __init__(self, span_s: float = 10.0) -> None:
+        self.span_s = float(span_s)
+        self._stamps: deque[float] = deque()
+        self._poses: deque[np.ndarray] = deque()
+        self._changed = threading.Condition()
+
+    def add(self, stamp: float, pose: np.ndarray) -> None:
+        """A checked pose. A stamp older than the newest (time jumped back: a bag started again)
+        starts the history afresh; one equal to it replaces it."""
+        with self._changed:
+            if self._stamps and stamp < self._stamps[-1]:
+                self._stamps.clear(), self._poses.clear()
+            elif self._stamps and stamp == self._stamps[-1]:
+                self._stamps.pop(), self._poses.pop()
+            self._stamps.append(float(stamp))
+            self._poses.append(pose)
+            while self._stamps[0] < stamp - self.span_s:
+                self._stamps.popleft(), self._poses.popleft()
+            self._changed.notify_all()
+
+    def at(self, stamp: float, wait_s: float = 0.0) -> tuple[np.ndarray | None, bool]:
+        """(T_world_lidar at ``stamp``, whether odometry covered it). Waits up to ``wait_s`` for a pose
+        at or after ``stamp`` (not when odometry has been silent for longer than ``wait_s`` of stamps
+        before it); without one, the newest pose, not covered. (None, False) without any pose."""
+        with self._changed:
+            if self._stamps and self._stamps[-1] >= stamp - max(wait_s, 1.0):
+                self._changed.wait_for(lambda: bool(self._stamps) and self._stamps[-1] >= stamp, wait_s)
+            if not self._stamps:
+                return None, False
+            stamps, poses = list(self._stamps), list(self._poses)
+        if stamp >= stamps[-1]:
+            return poses[-1], stamp == stamps[-1]
+        after = bisect.bisect_right(stamps, stamp)
+        if after == 0:  # older than the history: the oldest pose is the nearest
+            return poses[0], False
+        t0, t1 = stamps[after - 1], stamps[after]
+        return interpolated_pose(poses[after - 1], poses[after], (stamp - t0) / (t1 - t0)), True
+
+
+def interpolated_pose(A: np.ndarray, B: np.ndarray, fraction: float) -> np.ndarray:
+    """The pose ``fraction`` of the way from ``A`` to ``B``: positions linearly, rotations along
+    the shortest arc."""
+    T = np.eye(4)
+    turn = Rotation.from_matrix(A[:3, :3].T @ B[:3, :3]).as_rotvec()
+    T[:3, :3] = A[:3, :3] @ Rotation.from_rotvec(fraction * turn).as_matrix()
+    T[:3, 3] = (1.0 - fraction) * A[:3, 3] + fraction * B[:3, 3]
+    return T

@@ -31,6 +31,7 @@ def diagnostics_status(stats: StatsSnapshot, database_size: int, session: int) -
         "failed_saves": stats.failed_saves,
         "odometry_received": stats.odometry,
         "bad_odometry": stats.bad_odometry,
+        "late_odometry": stats.late_odometry,
         "latency_p50_ms": f"{p50:.1f}",
         "latency_p90_ms": f"{p90:.1f}",
         "latency_p99_ms": f"{p99:.1f}",

@@ -1,0 +1,82 @@
+"""vbrl_node over real DDS stores each keyframe with the odometry pose at the cloud's own stamp."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from sensor_msgs.msg import PointCloud2  # noqa: E402
+
+from vbrl_ros.ros.message_conversion import to_ros_msg  # noqa: E402
+from vbrl_ros.ros.testing import MessageCollector, diagnostics_values, isolated_ros_env, ros_context  # noqa: E402
+
+
+def cloud(stamp: float) -> PointCloud2:
+    rng = np.random.default_rng(int(stamp))
+    points = np.concatenate([rng.uniform(-30, 30, (20000, 2)), rng.uniform(-2, 4, (20000, 1))], axis=1)
+    return to_ros_msg(points.astype(np.float32), ["x", "y", "z"], stamp=stamp, frame_id="lidar")
+
+
+def odometry(stamp: float, x: float) -> Odometry:
+    msg = Odometry()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = int(stamp), round((stamp % 1) * 1e9)
+    msg.pose.pose.position.x = x
+    msg.pose.pose.orientation.w = 1.0
+    return msg
+
+
+def stored_positions(path: Path) -> np.ndarray:
+    from vbrl_ros.detection.database import KeyframeDatabase
+    from vbrl_ros.model.builtin import load_default_model
+    from vbrl_ros.ros.settings import NodeSettings
+
+    model = load_default_model()
+    return KeyframeDatabase.load(path, model.scorer(prune=NodeSettings().weight_prune), model.identity()).poses[:, :3, 3]
+
+
+def test_a_keyframe_is_stored_with_the_pose_at_its_stamp_even_when_odometry_comes_after_it(tmp_path):
+    """As from a LiDAR odometry: each scan's pose is published just after the scan. A keyframe stored
+    with the newest pose instead would sit a scan's travel behind, and submaps merged by it smear."""
+    database = tmp_path / "keyframes.npz"
+    with ros_context() as context:
+        env = isolated_ros_env(context.get_domain_id())
+        probe = rclpy.create_node("probe", context=context)
+        collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
+        clouds = probe.create_publisher(PointCloud2, "/points", 10)
+        odom = probe.create_publisher(Odometry, "/odom", 50)
+        node = subprocess.Popen(
+            [sys.executable, "-m", "vbrl_ros.ros.node", "--ros-args", "-p", "odom_topic:=/odom",
+             "-p", f"database_path:={database}", "-p", "diagnostics_period:=0.2", "-p", "save_every:=0"],
+            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+        def values() -> dict:
+            return diagnostics_values(collector.messages["/diagnostics"][-1])
+
+        try:
+            assert collector.wait_for({"/diagnostics": 1}, timeout=30), "node did not come up"
+            assert collector.spin_until(lambda: odom.get_subscription_count() > 0
+                                        and clouds.get_subscription_count() > 0, 20)
+            odom.publish(odometry(10.0, 0.0))
+            assert collector.spin_until(lambda: values()["odometry_received"] >= 1, 20)
+            for k, stamp in enumerate((10.5, 12.5, 14.5)):  # odometry at 2 m/s, once a second
+                clouds.publish(cloud(stamp))
+                odom.publish(odometry(stamp + 0.5, 2.0 * (stamp + 0.5 - 10.0)))
+                assert collector.spin_until(lambda: values()["keyframes_processed"] >= k + 1, 30), values()
+                odom.publish(odometry(stamp + 1.5, 2.0 * (stamp + 1.5 - 10.0)))
+            collector.spin_until(lambda: False, 1.0)
+            assert values()["late_odometry"] == 0
+        finally:
+            node.send_signal(signal.SIGTERM)
+            output, _ = node.communicate(timeout=60)
+        probe.destroy_node()
+    assert node.returncode == 0, output
+    # halfway between the poses around each stamp; the newest pose at arrival was 1 m behind
+    np.testing.assert_allclose(stored_positions(database), [[1.0, 0, 0], [5.0, 0, 0], [9.0, 0, 0]], atol=1e-6)
