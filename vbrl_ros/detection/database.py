@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from vbrl_ros.detection.database_file import MAX_KEYFRAME_ID, SavedDatabase, read_database, write_database
+from vbrl_ros.detection.submaps import KeyframeView, merged_cloud, neighbour_steps
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.keyframe_store import grown
 from vbrl_ros.index.parameters import IndexParameters
@@ -154,6 +155,19 @@ class KeyframeDatabase:
         """The stored (M, 3) float32 cloud (M = 0 when none was given)."""
         i = self._check_index(index)
         return self._cloud_points[self._cloud_offsets[i] : self._cloud_offsets[i + 1]].copy()
+
+    def submap_cloud(self, index: int, neighbours: int, voxel: float, max_gap_s: float, *,
+                     both_sides: bool = True) -> np.ndarray:
+        """The keyframe's cloud with up to ``neighbours`` adjacent keyframes' merged in by their poses
+        (:func:`~vbrl_ros.detection.submaps.merged_cloud`), in its grid frame; ``both_sides`` False:
+        only earlier ones."""
+        i = self._check_index(index)
+        rows = [i + step for step in neighbour_steps(neighbours, both_sides=both_sides) if 0 <= i + step < self._size]
+        return merged_cloud(self._view(i), [self._view(r) for r in rows], voxel, max_gap_s)
+
+    def _view(self, i: int) -> KeyframeView:
+        return KeyframeView(self.cloud(i), self._frames[i], self._poses[i], float(self._stamps[i]),
+                            self._sessions[self._session_index[i]])
 
     def index_of(self, keyframe_id: int) -> int:
         """Row of a keyframe id; ids are increasing, so a binary search."""

@@ -132,12 +132,24 @@ class LoopClosureDetector:
         t3 = time.perf_counter()
         retrieval = Retrieval(  # rows of older keyframes stay where they were after an add
             keyframe_id=keyframe_id, stamp=stamp, session=cfg.session,
-            candidates=candidates, candidates_scored=len(found), frame=frame.matrix, cloud=cloud,
-            candidate_clouds=[self.database.cloud(c.index) for c in candidates] if cfg.verify else [],
+            candidates=candidates, candidates_scored=len(found), frame=frame.matrix,
+            cloud=self._verified_cloud(len(self.database) - 1, both_sides=False) if cfg.verify else None,
+            candidate_clouds=[self._verified_cloud(c.index) for c in candidates] if cfg.verify else [],
             candidate_frames=[self.database.frame(c.index) for c in candidates],
         )
-        retrieval.timings_ms.update(describe=1e3 * (t1 - t0), query=1e3 * (t2 - t1), insert=1e3 * (t3 - t2))
+        t4 = time.perf_counter()
+        retrieval.timings_ms.update(describe=1e3 * (t1 - t0), query=1e3 * (t2 - t1), insert=1e3 * (t3 - t2),
+                                    submaps=1e3 * (t4 - t3))
         return retrieval
+
+    def _verified_cloud(self, index: int, *, both_sides: bool = True) -> np.ndarray:
+        """The cloud a keyframe is verified with: its own, or its submap with odometry (within half
+        ``exclude_recent_s``: a query's and its candidate's submaps never share a keyframe)."""
+        cfg = self.settings
+        if cfg.submap_keyframes == 0:
+            return self.database.cloud(index)
+        return self.database.submap_cloud(index, cfg.submap_keyframes, cfg.verification_voxel,
+                                          submap_gap_s(cfg), both_sides=both_sides)
 
 
 def verify_candidates(retrieval: Retrieval, settings: DetectorSettings) -> KeyframeResult:
@@ -173,6 +185,12 @@ def verify_candidates(retrieval: Retrieval, settings: DetectorSettings) -> Keyfr
         closures.append(closure)
     timings = {**retrieval.timings_ms, "verify": 1e3 * (time.perf_counter() - start)}
     return KeyframeResult(retrieval.keyframe_id, closures, retrieval.candidates_scored, timings, rejections)
+
+
+def submap_gap_s(settings: DetectorSettings) -> float:
+    """How far in time (exclusive) a submap reaches on each side of its keyframe: half the recent
+    past that is never a candidate, so no keyframe is in both a query's and its candidate's."""
+    return 0.5 * settings.exclude_recent_s
 
 
 def query_verifier(cloud: np.ndarray, settings: DetectorSettings, max_threads: int = 0) -> QueryVerifier:

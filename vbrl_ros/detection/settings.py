@@ -36,6 +36,7 @@ class DetectorSettings:
     verification_voxel: float = 1.0  # metres; stored clouds and registration use this voxel
     translation_search: float = -1.0  # metres between query viewpoints; 0: none; -1: the model's
     sequence_length: int = DEFAULT_LENGTH  # keyframes a candidate is scored over; 1: this one alone
+    submap_keyframes: int = 2  # neighbours merged into each verified cloud by odometry; 0: single scans
 
     def __post_init__(self) -> None:
         rules = {
@@ -54,6 +55,8 @@ class DetectorSettings:
                                    "-1 (the model's), 0 (off) or a step in (0, 10] metres"),
             "sequence_length": (isinstance(self.sequence_length, int) and 1 <= self.sequence_length <= 20,
                                 "an integer in [1, 20]"),
+            "submap_keyframes": (isinstance(self.submap_keyframes, int) and 0 <= self.submap_keyframes <= 10,
+                                 "an integer in [0, 10]"),
         }
         for name, (ok, rule) in rules.items():
             if not ok:

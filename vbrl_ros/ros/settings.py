@@ -63,6 +63,9 @@ DESCRIPTIONS: dict[str, str] = {
     "sequence_length": "keyframes a candidate is scored over: this one and the ones before it, against the "
                        "candidate's neighbours driven either way. 1: this keyframe alone (keyframes that "
                        "do not follow each other along a path).",
+    "submap_keyframes": "neighbouring keyframes merged into each verified cloud by odometry poses (the "
+                        "query's past, a stored keyframe's both sides): sparse scans then register as small "
+                        "local maps. 0: single scans; without odometry, single scans too.",
     "save_every": "keyframes between database saves. 0: only at shutdown or on ~/save_database.",
     "weight_prune": "descriptor rows weighing less than this times the largest row weight are neither "
                     "stored nor scored (learned sparsity; 0.0001 drops about 13 % of the built-in "
