@@ -16,6 +16,7 @@ from vbrl_ros.evaluation.verified import (
     best_verified,
     node_decision,
     operating_point,
+    submap_clouds,
     verify_candidates,
 )
 
@@ -109,3 +110,25 @@ def test_verifying_every_candidate_finds_the_revisits_and_rejects_the_rest(drive
         truth = np.linalg.inv(poses[q]) @ poses[indices[q, 0]]
         assert np.linalg.norm(one.T_query_match[q, 0][:3, 3] - truth[:3, 3]) < 0.3
     assert np.isnan(one.fitness[indices < 0]).all() and (one.rejection[indices < 0] == "no candidate").all()
+
+
+def test_evaluation_verifies_the_submaps_the_node_would():
+    """Each keyframe sees a patch of its own; a query's submap holds its past, a stored keyframe's
+    both sides, and nothing merges without poses, with 0 neighbours or beyond the time gap."""
+    patches = [np.random.default_rng(k).uniform(-3, 3, (200, 3)).astype(np.float32) + [20.0 * k, 0, 0]
+               for k in range(6)]
+    poses = np.stack([np.eye(4)] * 6)
+    poses[:, 0, 3] = np.arange(6.0)  # 1 m apart; each patch given in its sensor's frame
+    clouds = KeyframeClouds([p - [float(k), 0, 0] for k, p in enumerate(patches)], [np.eye(4)] * 6)
+    stamps = np.array([0.0, 1.0, 2.0, 3.0, 4.0, 40.0])
+    rule = DetectorSettings(submap_keyframes=2, verification_voxel=0.05)
+
+    def holders(merged: KeyframeClouds, k: int) -> set[int]:
+        return set(np.unique(np.round((merged.clouds[k][:, 0] + k) / 20.0).astype(int)).tolist())
+
+    queries = submap_clouds(clouds, poses, stamps, rule, both_sides=False)
+    stored = submap_clouds(clouds, poses, stamps, rule, both_sides=True)
+    assert [holders(queries, k) for k in range(6)] == [{0}, {0, 1}, {0, 1, 2}, {1, 2, 3}, {2, 3, 4}, {5}]
+    assert [holders(stored, k) for k in range(6)] == [{0, 1}, {0, 1, 2}, {1, 2, 3}, {2, 3, 4}, {3, 4}, {5}]
+    assert submap_clouds(clouds, None, stamps, rule, both_sides=True) is clouds
+    assert submap_clouds(clouds, poses, stamps, DetectorSettings(submap_keyframes=0), both_sides=True) is clouds

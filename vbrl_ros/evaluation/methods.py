@@ -63,6 +63,8 @@ class SourceDescriptors:
     views: np.ndarray | None = None  # (n, V, d) raw descriptors from view_offsets; [:, 0] = vbrl
     view_offsets: np.ndarray | None = None  # (V, 2) metres, the first (0, 0)
     clouds: KeyframeClouds | None = None  # what the node keeps for verification, when asked for
+    poses: np.ndarray | None = None  # (n, 4, 4) T_world_lidar of each keyframe; None without poses
+    stamps: np.ndarray | None = None  # (n,) seconds
 
     def __len__(self) -> int:
         return len(self.keyframe_index)
@@ -136,6 +138,8 @@ def describe_source(
             views=views if len(offsets) > 1 else None,
             view_offsets=offsets,
             clouds=None if verification_voxel is None else KeyframeClouds(clouds, frames),
+            poses=None if source.poses is None else source.poses[indices].copy(),
+            stamps=np.asarray(source.stamps, np.float64)[indices].copy(),
         )
 
 

@@ -25,14 +25,15 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from vbrl_ros.detection.detector import closure_rejection, query_verifier, to_sensor_frames
+from vbrl_ros.detection.detector import closure_rejection, query_verifier, submap_gap_s, to_sensor_frames
 from vbrl_ros.detection.registration import QueryVerifier
 from vbrl_ros.detection.settings import DetectorSettings
+from vbrl_ros.detection.submaps import KeyframeView, merged_cloud, neighbour_steps
 from vbrl_ros.evaluation.metrics import RetrievalMetrics
 from vbrl_ros.features.parallel import bounded_map, default_workers
 
 __all__ = ["Candidates", "KeyframeClouds", "VerifiedCandidates", "verify_candidates", "best_verified", "node_decision",
-           "OperatingPoint", "operating_point"]
+           "OperatingPoint", "operating_point", "submap_clouds"]
 
 
 @dataclass(frozen=True)
@@ -63,6 +64,22 @@ class KeyframeClouds:
 
     clouds: Sequence[np.ndarray]
     frames: Sequence[np.ndarray]
+
+
+def submap_clouds(clouds: KeyframeClouds, poses: np.ndarray | None, stamps: np.ndarray,
+                  settings: DetectorSettings, *, both_sides: bool) -> KeyframeClouds:
+    """Every keyframe's cloud as the node verifies it under ``settings`` (``submap_keyframes``,
+    :mod:`~vbrl_ros.detection.submaps`): queries see only their past (``both_sides`` False),
+    stored keyframes both sides. The source's poses stand for the node's odometry; without
+    poses, or with ``submap_keyframes`` 0, the single clouds."""
+    if poses is None or settings.submap_keyframes == 0:
+        return clouds
+    n, gap = len(clouds.clouds), submap_gap_s(settings)
+    views = [KeyframeView(clouds.clouds[i], clouds.frames[i], poses[i], float(stamps[i])) for i in range(n)]
+    steps = neighbour_steps(settings.submap_keyframes, both_sides=both_sides)
+    merged = [merged_cloud(views[i], [views[i + s] for s in steps if 0 <= i + s < n],
+                           settings.verification_voxel, gap) for i in range(n)]
+    return KeyframeClouds(merged, clouds.frames)
 
 
 _worker: tuple[KeyframeClouds, KeyframeClouds, DetectorSettings] | None = None

@@ -123,6 +123,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     verify.add_argument("--max-closure-distance", type=float,
                         default=DETECTOR_DEFAULTS.max_closure_distance, metavar="M",
                         help="the node's max_closure_distance, metres")
+    verify.add_argument("--submap-keyframes", type=int, default=DETECTOR_DEFAULTS.submap_keyframes, metavar="N",
+                        help="the node's submap_keyframes: neighbours merged into each verified cloud by the "
+                             "source's poses (0: single scans)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
 

@@ -24,11 +24,13 @@ from vbrl_ros.tools.evaluate_output import cell
 from vbrl_ros.training.ablations import FULL_NAME
 from vbrl_ros.evaluation.verified import (
     Candidates,
+    KeyframeClouds,
     OperatingPoint,
     VerifiedCandidates,
     best_verified,
     node_decision,
     operating_point,
+    submap_clouds,
     verify_candidates,
 )
 
@@ -73,7 +75,8 @@ def check_arguments(args: argparse.Namespace) -> None:
 def settings(args: argparse.Namespace, min_fitness: float) -> DetectorSettings:
     """The node's acceptance rule from the options; a bad one is named with the detector's rule."""
     options = {"top_k": ("--verify-top-k", args.verify_top_k), "min_fitness": ("--min-fitness", min_fitness),
-               "max_closure_distance": ("--max-closure-distance", args.max_closure_distance)}
+               "max_closure_distance": ("--max-closure-distance", args.max_closure_distance),
+               "submap_keyframes": ("--submap-keyframes", args.submap_keyframes)}
     for name, (option, value) in options.items():
         try:
             DetectorSettings(**{name: value})
@@ -98,9 +101,9 @@ def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, databas
             continue  # ablations: retrieval only
         k = min(rule.top_k, results.k)
         candidates = Candidates(results.indices[:, :k], results.distances[:, :k])
-        verified = verify_candidates(queries.clouds, None if database is queries else database.clouds,
-                                     candidates, rule, workers=args.workers, progress=not args.quiet,
-                                     description=f"verifying {name}")
+        query_clouds, database_clouds = verified_clouds(queries, database, rule)
+        verified = verify_candidates(query_clouds, database_clouds, candidates, rule, workers=args.workers,
+                                     progress=not args.quiet, description=f"verifying {name}")
         outputs.checked[name] = (candidates, verified)
         indices, distances = best_verified(candidates, verified)
         metrics[name + VERIFIED_SUFFIX] = score(RetrievalResults(indices, distances, results.database_limit))
@@ -122,6 +125,15 @@ def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, databas
             outputs.points[name][min_fitness] = {r: operating_point(m, accepted) for r, m in point.items()}
         outputs.thresholds[name] = threshold
     return outputs
+
+
+def verified_clouds(queries: SourceDescriptors, database: SourceDescriptors,
+                    rule: DetectorSettings) -> tuple[KeyframeClouds, KeyframeClouds]:
+    """The queries' and the database's clouds as the node verifies them under ``rule``: submaps
+    of the queries' past and of the stored keyframes' both sides (the same source for P1)."""
+    def submaps(source: SourceDescriptors, both_sides: bool) -> KeyframeClouds:
+        return submap_clouds(source.clouds, source.poses, source.stamps, rule, both_sides=both_sides)
+    return submaps(queries, False), submaps(database, True)
 
 
 def format_points(outputs: VerifiedOutputs, radii: list[float]) -> str:
