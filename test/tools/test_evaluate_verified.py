@@ -82,6 +82,7 @@ def test_bad_verification_options_say_which(tmp_path, capsys):
     source = tmp_path / "missing"
     for option, value, named in (("--min-fitness", "1.5", "min_fitness"), ("--verify-top-k", "0", "top_k"),
                                  ("--max-closure-distance", "-1", "max_closure_distance"),
+                                 ("--submap-keyframes", "11", "submap_keyframes"),
                                  ("--distance-threshold", "nan", "--distance-threshold")):
         assert vbrl("eval", source, "--verify", option, value) != 0
         assert named in capsys.readouterr().err

@@ -59,3 +59,8 @@ def test_every_recording_is_scored_by_a_model_trained_without_it(folder, tmp_pat
 def test_a_folder_with_fewer_than_two_recordings_is_refused(tmp_path, capsys):
     assert vbrl("loo", tmp_path) == 2
     assert "leave-one-out needs at least 2" in capsys.readouterr().err
+
+
+def test_a_bad_submap_setting_is_refused_before_any_work(folder, capsys):
+    assert vbrl("loo", folder, "--submap-keyframes", "-1") == 2
+    assert "--submap-keyframes: 'submap_keyframes' must be an integer in [0, 10]" in capsys.readouterr().err

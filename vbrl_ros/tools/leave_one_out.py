@@ -44,6 +44,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the table as JSON")
     parser.add_argument("--simulated-towns", action=argparse.BooleanOptionalAction, default=True,
                         help="train on the built-in model's simulated towns too, as its recipe does (on)")
+    parser.add_argument("--submap-keyframes", type=int, default=None, metavar="N",
+                        help="the node's submap_keyframes for verification (default: the node's, 2; "
+                             "0: single scans)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
 
@@ -76,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from vbrl_ros.training.presets import RECOGNITION_TRANSLATION_SEARCH_M, recognition_config
 
+    rule = DetectorSettings() if args.submap_keyframes is None else checked_rule(args.submap_keyframes)
     recordings = recordings_in(args.folder)
     progress = not args.quiet
     config = recognition_config()
@@ -97,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
                                                        if j != k]).model
         path = model.save(args.out_dir / f"without_{held.name}.npz")
         print(f"[{k + 1}/{len(recordings)}] {held.name}: model trained without it -> {path}")
-        rows.append({"recording": held.name, **evaluate(sources[k], model, progress)})
+        rows.append({"recording": held.name, **evaluate(sources[k], model, rule, progress)})
     print(format_rows(rows))
     if args.json is not None:
         text = json.dumps(json_safe(rows), indent=1, allow_nan=False)
@@ -106,10 +110,20 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def evaluate(source, model, progress: bool) -> dict:
+def checked_rule(submap_keyframes: int):
+    """The node's default settings with ``submap_keyframes``; a bad value names the option."""
+    from vbrl_ros.detection.settings import DetectorSettings, SettingsError
+
+    try:
+        return DetectorSettings(submap_keyframes=submap_keyframes)
+    except SettingsError as error:
+        raise ValueError(f"--submap-keyframes: {error}") from None
+
+
+def evaluate(source, model, rule, progress: bool) -> dict:
     """P1 metrics at RADIUS_M of the model and of Scan Context on one described recording:
-    retrieval, verified (swept over fitness) and what the node publishes at its defaults."""
-    from vbrl_ros.detection.settings import DetectorSettings
+    retrieval, verified (swept over fitness) and what the node publishes under ``rule`` (the
+    detector's settings)."""
     from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
     from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod
     from vbrl_ros.evaluation.metrics import evaluate_online
@@ -123,7 +137,6 @@ def evaluate(source, model, progress: bool) -> dict:
         verify_candidates,
     )
 
-    rule = DetectorSettings()
     out = {}
     for name, method in (("vbrl", VBRLMethod("VBRL", model, prune=0.0001)),
                          ("scan_context", ScanContextMethod(ScanContextConfig()))):
