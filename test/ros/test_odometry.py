@@ -122,8 +122,9 @@ def test_without_odometry_at_the_stamp_the_newest_pose_is_used_and_said_so():
     start = time.monotonic()
     pose, covered = history.at(60.0, wait_s=5.0)  # odometry silent for 50 s: no wait
     assert not covered and time.monotonic() - start < 1.0
-    pose, covered = history.at(9.0)  # before the history: its oldest pose
-    assert not covered and pose[0, 3] == 3.0
+    history.add(11.0, at(4.0))
+    pose, covered = history.at(9.0)  # older than the history (another time base?): the newest
+    assert not covered and pose[0, 3] == 4.0
 
 
 def test_time_going_back_starts_the_history_afresh_and_old_poses_are_forgotten():

@@ -108,7 +108,8 @@ class PoseHistory:
     def at(self, stamp: float, wait_s: float = 0.0) -> tuple[np.ndarray | None, bool]:
         """(T_world_lidar at ``stamp``, whether odometry covered it). Waits up to ``wait_s`` for a pose
         at or after ``stamp`` (not when odometry has been silent for longer than ``wait_s`` of stamps
-        before it); without one, the newest pose, not covered. (None, False) without any pose."""
+        before it); without one, or for a stamp older than the history, the newest pose, not
+        covered. (None, False) without any pose."""
         with self._changed:
             if self._stamps and self._stamps[-1] >= stamp - max(wait_s, 1.0):
                 self._changed.wait_for(lambda: bool(self._stamps) and self._stamps[-1] >= stamp, wait_s)
@@ -118,8 +119,8 @@ class PoseHistory:
         if stamp >= stamps[-1]:
             return poses[-1], stamp == stamps[-1]
         after = bisect.bisect_right(stamps, stamp)
-        if after == 0:  # older than the history: the oldest pose is the nearest
-            return poses[0], False
+        if after == 0:  # older than the whole history: another time base, or a cloud very late
+            return poses[-1], False
         t0, t1 = stamps[after - 1], stamps[after]
         return interpolated_pose(poses[after - 1], poses[after], (stamp - t0) / (t1 - t0)), True
 
