@@ -107,6 +107,14 @@ def test_objective_decreases_monotonically_random(seed, n, l1, l2):
     assert_monotone(solve_vbrl(X, Y, g, l1, l2, max_iter=100, tol=1e-12).objective_history, float(np.sum(Y ** 2)))
 
 
+def test_a_vanishing_lambda_is_least_squares_not_an_overflow():
+    """λ2 = 2.2e-308: Λ⁻¹ overflowed to inf and W jumped to 0 (objective 1e-29 -> 5)."""
+    X, Y, g = make_problem(5, v=4, sizes=(2, 2), c=2, seed=0)
+    r = solve_vbrl(X, Y, g, 0.0, float(np.finfo(float).tiny), max_iter=100, tol=1e-12)
+    assert_monotone(r.objective_history, float(np.sum(Y ** 2)))
+    assert r.objective_history[-1] < 1e-20 and np.isfinite(r.W).all()
+
+
 def smooth_gradient(W, X, Y, g, l1, l2):
     """∇ of Eq. 3 where every group is non-zero: 2X(XᵀW − Y) + ΛW with Λ from exact norms."""
     return 2 * X @ (X.T @ W - Y) + 2 * irls_weights(W, g, l1, l2, 0.0)[:, None] * W

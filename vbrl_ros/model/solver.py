@@ -193,13 +193,20 @@ def least_squares_x(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
 
 
 def woodbury_step(X: np.ndarray, Y: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """W = Λ⁻¹X (I_n + XᵀΛ⁻¹X)⁻¹ Y. I_n + XᵀΛ⁻¹X ⪰ I is SPD → Cholesky, cost O(n²d)."""
-    linv = 1.0 / lam
-    Xs = X * np.sqrt(linv)[:, None]
+    """W = Λ⁻¹X (I_n + XᵀΛ⁻¹X)⁻¹ Y, computed as S X (m I_n + XᵀSX)⁻¹ Y with m = min λ and
+    S = m Λ⁻¹ ≤ I: the same W, but a tiny λ (1e-308) no longer overflows Λ⁻¹ to inf. SPD →
+    Cholesky, cost O(n²d); a Gram matrix singular to rounding (λ → 0 with dependent scans)
+    falls back to least squares."""
+    m = float(lam.min())
+    scale = m / lam
+    Xs = X * np.sqrt(scale)[:, None]
     K = Xs.T @ Xs
-    K.flat[:: K.shape[0] + 1] += 1.0
-    Z = sla.cho_solve(sla.cho_factor(K, overwrite_a=True, check_finite=False), Y, check_finite=False)
-    return linv[:, None] * (X @ Z)
+    K.flat[:: K.shape[0] + 1] += m
+    try:
+        Z = sla.cho_solve(sla.cho_factor(K, check_finite=False), Y, check_finite=False)
+    except np.linalg.LinAlgError:
+        Z = np.linalg.lstsq(K, Y, rcond=None)[0]
+    return scale[:, None] * (X @ Z)
 
 
 def check_problem(X, Y, groups, lambda1, lambda2, gram):
