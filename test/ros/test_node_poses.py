@@ -1,4 +1,5 @@
-"""vbrl_node over real DDS stores each keyframe with the odometry pose at the cloud's own stamp."""
+"""vbrl_node over real DDS stores each keyframe with the odometry pose at the cloud's own stamp,
+and says so when the odometry moves another frame than the clouds'."""
 
 from __future__ import annotations
 
@@ -25,8 +26,9 @@ def cloud(stamp: float) -> PointCloud2:
     return to_ros_msg(points.astype(np.float32), ["x", "y", "z"], stamp=stamp, frame_id="lidar")
 
 
-def odometry(stamp: float, x: float) -> Odometry:
+def odometry(stamp: float, x: float, child_frame: str = "lidar") -> Odometry:
     msg = Odometry()
+    msg.child_frame_id = child_frame
     msg.header.stamp.sec, msg.header.stamp.nanosec = int(stamp), round((stamp % 1) * 1e9)
     msg.pose.pose.position.x = x
     msg.pose.pose.orientation.w = 1.0
@@ -42,6 +44,16 @@ def stored_positions(path: Path) -> np.ndarray:
     return KeyframeDatabase.load(path, model.scorer(prune=NodeSettings().weight_prune), model.identity()).poses[:, :3, 3]
 
 
+def values(collector: MessageCollector) -> dict:
+    return diagnostics_values(collector.messages["/diagnostics"][-1])
+
+
+def run_node(env: dict, *params: str) -> subprocess.Popen:
+    args = [a for p in ("odom_topic:=/odom", "diagnostics_period:=0.2", *params) for a in ("-p", p)]
+    return subprocess.Popen([sys.executable, "-m", "vbrl_ros.ros.node", "--ros-args", *args],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
 def test_a_keyframe_is_stored_with_the_pose_at_its_stamp_even_when_odometry_comes_after_it(tmp_path):
     """As from a LiDAR odometry: each scan's pose is published just after the scan. A keyframe stored
     with the newest pose instead would sit a scan's travel behind, and submaps merged by it smear."""
@@ -52,31 +64,54 @@ def test_a_keyframe_is_stored_with_the_pose_at_its_stamp_even_when_odometry_come
         collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
         clouds = probe.create_publisher(PointCloud2, "/points", 10)
         odom = probe.create_publisher(Odometry, "/odom", 50)
-        node = subprocess.Popen(
-            [sys.executable, "-m", "vbrl_ros.ros.node", "--ros-args", "-p", "odom_topic:=/odom",
-             "-p", f"database_path:={database}", "-p", "diagnostics_period:=0.2", "-p", "save_every:=0"],
-            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-
-        def values() -> dict:
-            return diagnostics_values(collector.messages["/diagnostics"][-1])
+        node = run_node(env, f"database_path:={database}", "save_every:=0")
 
         try:
             assert collector.wait_for({"/diagnostics": 1}, timeout=30), "node did not come up"
             assert collector.spin_until(lambda: odom.get_subscription_count() > 0
                                         and clouds.get_subscription_count() > 0, 20)
             odom.publish(odometry(10.0, 0.0))
-            assert collector.spin_until(lambda: values()["odometry_received"] >= 1, 20)
+            assert collector.spin_until(lambda: values(collector)["odometry_received"] >= 1, 20)
             for k, stamp in enumerate((10.5, 12.5, 14.5)):  # odometry at 2 m/s, once a second
                 clouds.publish(cloud(stamp))
                 odom.publish(odometry(stamp + 0.5, 2.0 * (stamp + 0.5 - 10.0)))
-                assert collector.spin_until(lambda: values()["keyframes_processed"] >= k + 1, 30), values()
+                assert collector.spin_until(lambda: values(collector)["keyframes_processed"] >= k + 1, 30), \
+                    values(collector)
                 odom.publish(odometry(stamp + 1.5, 2.0 * (stamp + 1.5 - 10.0)))
             collector.spin_until(lambda: False, 1.0)
-            assert values()["late_odometry"] == 0
+            assert values(collector)["late_odometry"] == 0
         finally:
             node.send_signal(signal.SIGTERM)
             output, _ = node.communicate(timeout=60)
         probe.destroy_node()
     assert node.returncode == 0, output
+    assert "odometry moves frame" not in output  # odometry of the LiDAR's own frame
     # halfway between the poses around each stamp; the newest pose at arrival was 1 m behind
     np.testing.assert_allclose(stored_positions(database), [[1.0, 0, 0], [5.0, 0, 0], [9.0, 0, 0]], atol=1e-6)
+
+
+def test_odometry_of_another_frame_than_the_clouds_is_said_once():
+    with ros_context() as context:
+        env = isolated_ros_env(context.get_domain_id())
+        probe = rclpy.create_node("probe", context=context)
+        collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
+        clouds = probe.create_publisher(PointCloud2, "/points", 10)
+        odom = probe.create_publisher(Odometry, "/odom", 50)
+        node = run_node(env)
+        try:
+            assert collector.wait_for({"/diagnostics": 1}, timeout=30), "node did not come up"
+            assert collector.spin_until(lambda: odom.get_subscription_count() > 0
+                                        and clouds.get_subscription_count() > 0, 20)
+            for k in range(3):
+                odom.publish(odometry(10.0 + k, 2.0 * k, child_frame="base_link"))
+                assert collector.spin_until(lambda: values(collector)["odometry_received"] >= k + 1, 20)
+                clouds.publish(cloud(10.0 + k))
+                assert collector.spin_until(lambda: values(collector)["keyframes_processed"] >= k + 1, 30), \
+                    values(collector)
+        finally:
+            node.send_signal(signal.SIGTERM)
+            output, _ = node.communicate(timeout=60)
+        probe.destroy_node()
+    assert node.returncode == 0, output
+    assert output.count("odometry moves frame 'base_link', the clouds are in 'lidar': submap_keyframes take "
+                        "odometry as the LiDAR's own motion") == 1, output

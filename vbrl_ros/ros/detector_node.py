@@ -112,6 +112,8 @@ class VbrlNode(Node):
         self._verifier = VerifierProcess(self.detector.settings) if s.detector.verify else None
         self._spacing = KeyframeSpacing(s.keyframe_distance, s.keyframe_interval)
         self._pose_history = PoseHistory()
+        self._odometry_frame: str | None = None  # child_frame_id of the first good odometry
+        self._frames_compared = False
         self._gaps = SequenceGaps()
         self._edges: deque[tuple[int, int]] = deque(maxlen=10_000)
         self._keyframes_since_save = 0
@@ -220,6 +222,8 @@ class VbrlNode(Node):
             return
         self._spacing.moved_to(pose)
         self._pose_history.add(stamp_seconds(msg.header.stamp), pose)
+        if self._odometry_frame is None:
+            self._odometry_frame = msg.child_frame_id
 
     def _on_cloud(self, raw: bytes, info: dict) -> None:
         now = time.monotonic()
@@ -250,9 +254,28 @@ class VbrlNode(Node):
             self.stats.count("empty")
             self.get_logger().warning("PointCloud2 without finite points skipped", throttle_duration_sec=5.0)
             return
+        self._compare_frames(frame)
         self._spacing.mark(stamp)
         if self._keyframes.put((points, stamp, self._spacing.latest_pose, now)):
             self.stats.count("dropped")  # the worker is far behind: the oldest waiting one goes
+
+    def _compare_frames(self, cloud_frame: bytes) -> None:
+        """Once odometry and a keyframe have both come: warn if the odometry moves another frame
+        than the clouds' (a robot's base_link, say). Submaps and levelling take it as the LiDAR's
+        own motion; without tf the node cannot carry it over, and a LiDAR mounted turned against
+        that frame would smear every submap."""
+        if self._frames_compared or self._odometry_frame is None:
+            return
+        self._frames_compared = True
+        cloud = cloud_frame.decode(errors="replace")
+        uses = [name for name, on in (("submap_keyframes", self.settings.detector.submap_keyframes > 0),
+                                      ("level_from_odometry", self.settings.level_from_odometry)) if on]
+        if self._odometry_frame and self._odometry_frame != cloud and uses:
+            self.get_logger().warning(
+                f"odometry moves frame '{self._odometry_frame}', the clouds are in '{cloud}': "
+                f"{' and '.join(uses)} take odometry as the LiDAR's own motion; publish odometry of "
+                f"the LiDAR frame, or set submap_keyframes to 0 if the two frames are turned against "
+                f"each other")
 
     # -- worker thread: describe, search, store ----------------------------------
 
