@@ -1,5 +1,6 @@
 """vbrl_node over real DDS stores each keyframe with the odometry pose at the cloud's own stamp,
-and says so when the odometry moves another frame than the clouds'."""
+carries a base_link odometry over to the LiDAR mounted on it, and says so when odometry moves
+another frame than the clouds' with no mounting given."""
 
 from __future__ import annotations
 
@@ -35,13 +36,17 @@ def odometry(stamp: float, x: float, child_frame: str = "lidar") -> Odometry:
     return msg
 
 
-def stored_positions(path: Path) -> np.ndarray:
+def stored_poses(path: Path) -> np.ndarray:
     from vbrl_ros.detection.database import KeyframeDatabase
     from vbrl_ros.model.builtin import load_default_model
     from vbrl_ros.ros.settings import NodeSettings
 
     model = load_default_model()
-    return KeyframeDatabase.load(path, model.scorer(prune=NodeSettings().weight_prune), model.identity()).poses[:, :3, 3]
+    return KeyframeDatabase.load(path, model.scorer(prune=NodeSettings().weight_prune), model.identity()).poses
+
+
+def stored_positions(path: Path) -> np.ndarray:
+    return stored_poses(path)[:, :3, 3]
 
 
 def values(collector: MessageCollector) -> dict:
@@ -90,14 +95,15 @@ def test_a_keyframe_is_stored_with_the_pose_at_its_stamp_even_when_odometry_come
     np.testing.assert_allclose(stored_positions(database), [[1.0, 0, 0], [5.0, 0, 0], [9.0, 0, 0]], atol=1e-6)
 
 
-def test_odometry_of_another_frame_than_the_clouds_is_said_once():
+def base_link_run(*params: str) -> str:
+    """Three keyframes with odometry of base_link, 2 m apart; the node's output."""
     with ros_context() as context:
         env = isolated_ros_env(context.get_domain_id())
         probe = rclpy.create_node("probe", context=context)
         collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
         clouds = probe.create_publisher(PointCloud2, "/points", 10)
         odom = probe.create_publisher(Odometry, "/odom", 50)
-        node = run_node(env)
+        node = run_node(env, *params)
         try:
             assert collector.wait_for({"/diagnostics": 1}, timeout=30), "node did not come up"
             assert collector.spin_until(lambda: odom.get_subscription_count() > 0
@@ -113,5 +119,22 @@ def test_odometry_of_another_frame_than_the_clouds_is_said_once():
             output, _ = node.communicate(timeout=60)
         probe.destroy_node()
     assert node.returncode == 0, output
+    return output
+
+
+def test_odometry_of_another_frame_than_the_clouds_is_said_once():
+    output = base_link_run()
     assert output.count("odometry moves frame 'base_link', the clouds are in 'lidar': submap_keyframes take "
-                        "odometry as the LiDAR's own motion") == 1, output
+                        "odometry as the LiDAR's own motion; set odometry_lidar_pose") == 1, output
+
+
+def test_odometry_of_base_link_is_carried_over_to_a_lidar_mounted_on_it(tmp_path):
+    """A LiDAR 0.5 m ahead of base_link and 0.3 m up, turned to look back: the keyframes are stored
+    with the LiDAR's poses, and nothing is said."""
+    database = tmp_path / "keyframes.npz"
+    output = base_link_run(f"database_path:={database}", "save_every:=0",
+                           f"odometry_lidar_pose:=[0.5, 0.0, 0.3, 0.0, 0.0, {np.pi!r}]")
+    assert "odometry moves frame" not in output
+    poses = stored_poses(database)
+    np.testing.assert_allclose(poses[:, :3, 3], [[0.5, 0, 0.3], [2.5, 0, 0.3], [4.5, 0, 0.3]], atol=1e-9)
+    np.testing.assert_allclose(poses[:, :3, :3], np.broadcast_to(np.diag([-1.0, -1.0, 1.0]), (3, 3, 3)), atol=1e-9)

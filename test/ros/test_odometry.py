@@ -14,7 +14,7 @@ import pytest
 pytest.importorskip("rclpy")
 from nav_msgs.msg import Odometry  # noqa: E402
 
-from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, PoseHistory, pose_matrix  # noqa: E402
+from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, PoseHistory, mounting_matrix, pose_matrix  # noqa: E402
 
 
 def odometry(position=(0.0, 0.0, 0.0), quaternion=(0.0, 0.0, 0.0, 1.0)) -> Odometry:
@@ -135,3 +135,19 @@ def test_time_going_back_starts_the_history_afresh_and_old_poses_are_forgotten()
     history.add(3.0, at(-7.0))  # a bag played again
     pose, covered = history.at(3.0)
     assert covered and pose[0, 3] == -7.0
+
+
+def test_a_mounting_is_read_as_a_urdf_joint_origin():
+    """Fixed-axis roll, then pitch, then yaw (R = Rz Ry Rx), then the offset: a LiDAR 0.5 m ahead of
+    base_link, turned to look back, sees base_link's forward axis as its -x."""
+    T = mounting_matrix((0.5, 0.0, 0.3, 0.0, 0.0, math.pi))
+    np.testing.assert_allclose(T[:3, 3], [0.5, 0.0, 0.3])
+    np.testing.assert_allclose(T[:3, :3].T @ [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], atol=1e-12)
+    roll, pitch, yaw = 0.1, -0.2, 0.7
+
+    def about(axis: int, angle: float) -> np.ndarray:
+        return Rotation.from_rotvec(angle * np.eye(3)[axis]).as_matrix()
+
+    np.testing.assert_allclose(mounting_matrix((0, 0, 0, roll, pitch, yaw))[:3, :3],
+                               about(2, yaw) @ about(1, pitch) @ about(0, roll), atol=1e-12)
+    np.testing.assert_array_equal(mounting_matrix((0.0,) * 6), np.eye(4))

@@ -77,3 +77,20 @@ def test_index_parameters_reach_the_index_and_minus_one_is_the_model_s_default()
     assert (given.candidates, given.refine_dim, given.bound_shifts, given.storage) == (64, 0, None, "float16")
     default = index_parameters(NodeSettings())
     assert (default.candidates, default.refine_dim, default.bound_shifts) == (None, None, None)
+
+
+@pytest.mark.parametrize("value", [[0.0] * 5, [0.0] * 7, [0.0, 0.0, 0.0, 0.0, 0.0, float("nan")],
+                                   [True] * 6, "0 0 0 0 0 0", 0.0, ["0"] * 6])
+def test_a_mounting_that_is_not_six_finite_numbers_names_the_parameter(value):
+    with pytest.raises(SettingsError, match=r"^parameter 'odometry_lidar_pose' must be six finite numbers "
+                                            r"\[x, y, z, roll, pitch, yaw\], got "):
+        NodeSettings.from_values({"odometry_lidar_pose": value})
+
+
+def test_a_mounting_comes_as_a_ros_double_or_integer_array():
+    import array
+
+    assert NodeSettings.from_values({"odometry_lidar_pose": array.array("d", [0.5, 0, 0.3, 0, 0, 3.1])}) \
+        .odometry_lidar_pose == (0.5, 0.0, 0.3, 0.0, 0.0, 3.1)
+    assert NodeSettings.from_values({"odometry_lidar_pose": [1, 0, 0, 0, 0, 0]}).odometry_lidar_pose == \
+        (1.0, 0.0, 0.0, 0.0, 0.0, 0.0)

@@ -56,7 +56,7 @@ from vbrl_ros.ros.cloud_intake import SequenceGaps, cloud_header
 from vbrl_ros.ros.messages import closures_message, lio_sam_message
 from vbrl_ros.ros.newest_queue import NewestQueue
 from vbrl_ros.ros.node_stats import NodeStats
-from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, PoseHistory, pose_matrix
+from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, PoseHistory, mounting_matrix, pose_matrix
 from vbrl_ros.ros.outputs import diagnostics_status, keyframe_markers
 from vbrl_ros.ros.settings import (
     DESCRIPTIONS,
@@ -112,6 +112,7 @@ class VbrlNode(Node):
         self._verifier = VerifierProcess(self.detector.settings) if s.detector.verify else None
         self._spacing = KeyframeSpacing(s.keyframe_distance, s.keyframe_interval)
         self._pose_history = PoseHistory()
+        self._odometry_to_lidar = mounting_matrix(s.odometry_lidar_pose)
         self._odometry_frame: str | None = None  # child_frame_id of the first good odometry
         self._frames_compared = False
         self._gaps = SequenceGaps()
@@ -215,7 +216,7 @@ class VbrlNode(Node):
     def _on_odom(self, msg: Odometry) -> None:
         self.stats.count("odometry")
         try:
-            pose = pose_matrix(msg)
+            pose = pose_matrix(msg) @ self._odometry_to_lidar
         except OdometryError as error:
             self.stats.count("bad_odometry")
             self.get_logger().warning(f"odometry skipped: {error}", throttle_duration_sec=5.0)
@@ -260,22 +261,22 @@ class VbrlNode(Node):
             self.stats.count("dropped")  # the worker is far behind: the oldest waiting one goes
 
     def _compare_frames(self, cloud_frame: bytes) -> None:
-        """Once odometry and a keyframe have both come: warn if the odometry moves another frame
-        than the clouds' (a robot's base_link, say). Submaps and levelling take it as the LiDAR's
-        own motion; without tf the node cannot carry it over, and a LiDAR mounted turned against
-        that frame would smear every submap."""
+        """Once odometry and a keyframe have both come: warn if the odometry moves another frame than
+        the clouds' (a robot's base_link, say) and no ``odometry_lidar_pose`` says where the LiDAR
+        sits on it. Without tf the node cannot look it up, and a LiDAR mounted turned against that
+        frame would smear every submap."""
         if self._frames_compared or self._odometry_frame is None:
             return
         self._frames_compared = True
         cloud = cloud_frame.decode(errors="replace")
         uses = [name for name, on in (("submap_keyframes", self.settings.detector.submap_keyframes > 0),
                                       ("level_from_odometry", self.settings.level_from_odometry)) if on]
-        if self._odometry_frame and self._odometry_frame != cloud and uses:
+        mounted = any(self.settings.odometry_lidar_pose)
+        if self._odometry_frame and self._odometry_frame != cloud and uses and not mounted:
             self.get_logger().warning(
                 f"odometry moves frame '{self._odometry_frame}', the clouds are in '{cloud}': "
-                f"{' and '.join(uses)} take odometry as the LiDAR's own motion; publish odometry of "
-                f"the LiDAR frame, or set submap_keyframes to 0 if the two frames are turned against "
-                f"each other")
+                f"{' and '.join(uses)} take odometry as the LiDAR's own motion; set odometry_lidar_pose "
+                f"to where the LiDAR sits in '{self._odometry_frame}', or publish odometry of the LiDAR frame")
 
     # -- worker thread: describe, search, store ----------------------------------
 

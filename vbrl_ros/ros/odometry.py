@@ -44,6 +44,15 @@ def pose_matrix(odom: Odometry) -> np.ndarray:
     return T
 
 
+def mounting_matrix(pose: tuple[float, ...]) -> np.ndarray:
+    """4x4 T_child_lidar of ``[x, y, z, roll, pitch, yaw]`` (metres, radians; fixed-axis roll, then
+    pitch, then yaw, as a URDF joint's origin): odometry's pose times it is the LiDAR's."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", pose[3:]).as_matrix()
+    T[:3, 3] = pose[:3]
+    return T
+
+
 class KeyframeSpacing:
     """Decides which scans become keyframes: every ``distance`` metres of odometry travel, or,
     while no pose is known (no odometry yet, or none at the last keyframe), every ``interval`` s."""

@@ -11,6 +11,7 @@ all read it, and ``test/ros/test_settings.py`` keeps the file in step.
 
 from __future__ import annotations
 
+import array
 import difflib
 import json
 import math
@@ -43,8 +44,12 @@ DESCRIPTIONS: dict[str, str] = {
     "session_id": "session number of this run's keyframes. -1: one more than the largest in the database.",
     "keyframe_distance": "metres of odometry travel between keyframes (with odom_topic).",
     "keyframe_interval": "seconds between keyframes (without odometry).",
-    "level_from_odometry": "level each scan by odometry's roll and pitch (odometry must be in the LiDAR's "
-                           "frame) instead of by its own ground; the ground still sets the height.",
+    "level_from_odometry": "level each scan by odometry's roll and pitch instead of by its own ground; the "
+                           "ground still sets the height.",
+    "odometry_lidar_pose": "the LiDAR frame's pose in the frame odometry moves (its child_frame_id, a robot's "
+                           "base_link, say): [x, y, z, roll, pitch, yaw] in metres and radians, as a URDF "
+                           "joint's origin. Submaps and level_from_odometry then follow the LiDAR. All zero: "
+                           "odometry moves the LiDAR frame itself.",
     "distance_threshold": "accept a candidate whose distance is <= this (lower = more similar). "
                           "0: with verify, every one of the top_k is verified; without, the "
                           "model's own calibrated threshold.",
@@ -102,6 +107,7 @@ class NodeSettings:
     keyframe_distance: float = 1.0
     keyframe_interval: float = 1.0
     level_from_odometry: bool = False
+    odometry_lidar_pose: tuple[float, ...] = (0.0,) * 6
     detector: DetectorSettings = field(default_factory=DetectorSettings)
     save_every: int = 50
     weight_prune: float = 0.0001
@@ -122,8 +128,9 @@ class NodeSettings:
         for f in fields(cls):
             if f.name == "detector":
                 out.update({name: getattr(default.detector, name) for name in DETECTOR_PARAMETERS})
-            else:
-                out[f.name] = getattr(default, f.name)
+            else:  # a ROS array parameter, as a parameter file or rclpy gives it
+                value = getattr(default, f.name)
+                out[f.name] = list(value) if isinstance(value, tuple) else value
         return out
 
     @classmethod
@@ -133,12 +140,16 @@ class NodeSettings:
     @classmethod
     def from_values(cls, values: dict[str, Any]) -> "NodeSettings":
         """Build from parameter values, checking types and ranges; errors name the parameter."""
-        kinds = {name: type(default) for name, default in cls.defaults().items()}
+        kinds = {f.name: type(getattr(cls(), f.name)) for f in fields(cls) if f.name != "detector"}
+        kinds.update({name: type(getattr(DetectorSettings(), name)) for name in DETECTOR_PARAMETERS})
         clean: dict[str, Any] = {}
         for name, value in values.items():
             if name not in kinds:
                 raise SettingsError(unknown_parameters([name]))
             kind = kinds[name]
+            if kind is tuple:
+                clean[name] = pose_values(name, value)
+                continue
             if kind is float and isinstance(value, int) and not isinstance(value, bool):
                 value = float(value)
             if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
@@ -182,6 +193,17 @@ class NodeSettings:
             raise SettingsError("parameter 'cloud_topic' must not be empty")
 
 
+def pose_values(name: str, value: Any) -> tuple[float, ...]:
+    """Six finite numbers ``[x, y, z, roll, pitch, yaw]`` from a parameter value (a ROS double or
+    integer array arrives as a list or an ``array.array``)."""
+    numbers = list(value) if isinstance(value, (list, tuple, array.array)) else None
+    if (numbers is None or len(numbers) != 6
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in numbers)):
+        raise SettingsError(f"parameter '{name}' must be six finite numbers [x, y, z, roll, pitch, yaw], "
+                            f"got {value!r}")
+    return tuple(float(v) for v in numbers)
+
+
 def index_parameters(settings: NodeSettings) -> IndexParameters:
     """The keyframe index's parameters the node's settings give (-1: the model's default, None)."""
     chosen = {name.removeprefix("index_"): getattr(settings, name) for name in INDEX_PARAMETERS}
@@ -208,6 +230,8 @@ def yaml_value(value: Any) -> str:
     """A default as it is written in a parameter file or after ``-p name:=``."""
     if isinstance(value, bool):
         return "true" if value else "false"
+    if isinstance(value, list):
+        return "[" + ", ".join(yaml_value(v) for v in value) + "]"
     if isinstance(value, str):
         return value if value and value[0] not in "\"'{[&*!|>%@`#" else json.dumps(value)
     return repr(value)
