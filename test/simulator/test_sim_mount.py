@@ -113,7 +113,7 @@ def _cli(argv):
 
 def test_simulate_options_write_the_mount_into_poses_and_sidecar(tmp_path, capsys):
     tiny = ["--blocks", "2", "2", "--beams", "16", "--columns", "360", "--scans", "3", "--spacing", "3",
-            "--no-progress", "--format", "kitti"]
+            "--quiet", "--format", "kitti"]
     assert _cli([str(tmp_path), *tiny, "--sensor-height", "0.9", "--tilt", "5", "-15"]) == 0
     assert "sensor 0.9 m up, tilted 15.8 deg" in capsys.readouterr().out
     expected = make_route(generate_town(TownConfig(blocks_x=2, blocks_y=2), 0),

@@ -19,7 +19,7 @@ from vbrl_ros.training.presets import RECOGNITION_TRANSLATION_SEARCH_M, recognit
 pytest.importorskip("vbrl_ros.simulator")
 
 SMALL = ["--format", "kitti", "--blocks", "2", "2", "--spacing", "4", "--beams", "16", "--columns", "360",
-         "--no-progress"]
+         "--quiet"]
 QUICK = ["--quiet", "--workers", "1"]
 
 

@@ -15,7 +15,7 @@ from vbrl_ros.simulator.town import TownConfig, generate_town
 from vbrl_ros.tools import simulate as cli
 
 TINY = ["--blocks", "2", "2", "--beams", "16", "--columns", "360", "--scans", "4", "--spacing", "3",
-        "--no-progress"]
+        "--quiet"]
 KITTI_LOW = [*TINY, "--format", "kitti", "--sensor-height", "0.8"]
 DEGRADED = ["--blocked-azimuth", "150", "-150", "--thin-voxel", "0.5", "--no-ground", "--lane-offset", "0.8",
             "--lane-wander", "1.5"]
@@ -39,8 +39,14 @@ def test_help_documents_every_option(capsys):
     for option in ("--format", "--scenario", "--seed", "--town-seed", "--blocks", "--loops", "--spacing", "--rate",
                    "--scans", "--sample-offset", "--beams", "--columns", "--vertical-fov", "winter_snow", "kitti",
                    "sqlite3", "ros1", "--blocked-azimuth FROM TO", "--thin-voxel V", "--no-ground", "--lane-offset M",
-                   "--lane-wander M"):
+                   "--lane-wander M", "--quiet, --no-progress"):
         assert option in text
+
+
+@pytest.mark.parametrize("flag", ["--quiet", "--no-progress"])
+def test_quiet_as_in_every_command_and_its_first_name_still_works(flag):
+    assert _parser().parse_args(["simulate", "out", flag]).quiet
+    assert not _parser().parse_args(["simulate", "out"]).quiet
 
 
 def test_kitti_output_per_scenario_matches_the_library(tmp_path):

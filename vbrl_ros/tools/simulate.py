@@ -114,7 +114,8 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     ros.add_argument("--cloud-topic", default="/points", help="PointCloud2 topic")
     ros.add_argument("--odom-topic", default="/odom", help="Odometry topic (ground-truth pose)")
     ros.add_argument("--frame-id", default="lidar", help="frame of the clouds")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    # --quiet as in every other command; --no-progress, its first name, still works
+    parser.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
     return parser
 
@@ -205,7 +206,7 @@ def run(args: argparse.Namespace) -> int:
     for (scenario, seed, name), path, config in zip(jobs, paths, job_routes):
         sim = simulate_run(town, routes[config], lidar, scenario, seed, keyframes)
         started = time.perf_counter()
-        written = write_run(sim, path, args.format, progress=not args.no_progress, cloud_topic=args.cloud_topic,
+        written = write_run(sim, path, args.format, progress=not args.quiet, cloud_topic=args.cloud_topic,
                             odom_topic=args.odom_topic, frame_id=args.frame_id)
         sidecar = args.output / f"{name}.sim.json"
         sidecar.write_text(json.dumps(_describe(sim, town_config, config), indent=2) + "\n")
