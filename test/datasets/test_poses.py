@@ -15,6 +15,7 @@ from vbrl_ros.datasets.kitti_style import write_kitti_style
 from vbrl_ros.io.bag_writer import write_scan_bag
 from vbrl_ros.io.pointcloud2 import split_stamp, to_rosbags_msg
 from vbrl_ros.datasets.poses import (
+    OdometryFrameWarning,
     OutsidePoseRangeWarning,
     PoseSourceError,
     chain_tf,
@@ -124,14 +125,14 @@ def tf_message(stamp: float, parent: str, child: str, matrix: np.ndarray) -> obj
     return types["tf2_msgs/msg/TFMessage"](transforms=[stamped])
 
 
-def odometry_message(stamp: float, matrix: np.ndarray) -> object:
+def odometry_message(stamp: float, matrix: np.ndarray, child: str = "lidar") -> object:
     types = TYPESTORE.types
     (x, y, z), (qx, qy, qz, qw) = pose_fields(matrix)
     pose = types["geometry_msgs/msg/Pose"](position=types["geometry_msgs/msg/Point"](x, y, z),
                                            orientation=types["geometry_msgs/msg/Quaternion"](qx, qy, qz, qw))
     vector = types["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0)
     return types["nav_msgs/msg/Odometry"](
-        header=header(stamp), child_frame_id="lidar",
+        header=header(stamp), child_frame_id=child,
         pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
         twist=types["geometry_msgs/msg/TwistWithCovariance"](
             twist=types["geometry_msgs/msg/Twist"](linear=vector, angular=vector), covariance=np.zeros(36)))
@@ -151,15 +152,52 @@ def write_tf_bag(path: Path, scan_stamps: np.ndarray, odometry_topics: tuple[str
             messages.append((t, topic, "nav_msgs/msg/Odometry", odometry_message(t, pose)))
     for t in np.linspace(100.0, 101.0, 21):
         messages.append((t, "/tf", "tf2_msgs/msg/TFMessage", tf_message(t, "odom", "base_link", odom_base(t))))
-    messages.sort(key=lambda m: m[0])
+    return write_messages(path, messages)
+
+
+def write_messages(path: Path, messages: list[tuple[float, str, str, object]]) -> Path:
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         connections = {}
-        for t, topic, msgtype, msg in messages:
+        for t, topic, msgtype, msg in sorted(messages, key=lambda m: m[0]):
             if topic not in connections:
                 connections[topic] = writer.add_connection(topic, msgtype, typestore=TYPESTORE)
             sec, nanosec = split_stamp(float(t))
             writer.write(connections[topic], sec * 10**9 + nanosec, TYPESTORE.serialize_cdr(msg, msgtype))
     return path
+
+
+def write_base_link_bag(path: Path, scan_stamps: np.ndarray, *, with_tf: bool) -> Path:
+    """Clouds in frame 'lidar', Odometry of base_link at 10 Hz over [100, 101], and (``with_tf``)
+    /tf_static base_link->lidar."""
+    messages = [(t, "/points", "sensor_msgs/msg/PointCloud2",
+                 to_rosbags_msg(np.ones((3, 3)), ["x", "y", "z"], typestore=TYPESTORE, stamp=float(t),
+                                frame_id="lidar")) for t in scan_stamps]
+    if with_tf:
+        messages.append((99.0, "/tf_static", "tf2_msgs/msg/TFMessage",
+                         tf_message(99.0, "base_link", "lidar", BASE_LIDAR)))
+    messages += [(t, "/odom", "nav_msgs/msg/Odometry", odometry_message(t, odom_base(t), child="base_link"))
+                 for t in np.linspace(100.0, 101.0, 11)]
+    return write_messages(path, messages)
+
+
+def test_odometry_of_base_link_is_carried_over_to_the_lidar_by_the_bag_s_tf(tmp_path: Path) -> None:
+    """A robot's odometry moves base_link; taken as the LiDAR's, submaps merged by it would smear
+    wherever the LiDAR is turned against base_link (here by 90 degrees, 0.3 m ahead)."""
+    scan_stamps = np.array([100.1, 100.5, 100.9])
+    source = open_source(write_base_link_bag(tmp_path / "mounted", scan_stamps, with_tf=True))
+    expected = np.stack([odom_base(t) @ BASE_LIDAR for t in scan_stamps])
+    np.testing.assert_allclose(source.poses, expected, atol=2e-3)  # SLERP between samples, as above
+
+
+def test_odometry_of_another_frame_without_tf_is_said_and_kept(tmp_path: Path) -> None:
+    scan_stamps = np.array([100.1, 100.5, 100.9])
+    bag = write_base_link_bag(tmp_path / "unmounted", scan_stamps, with_tf=False)
+    with pytest.warns(OdometryFrameWarning, match="odometry moves frame 'base_link', the clouds are in 'lidar', "
+                                                  "and the bag's tf does not connect them"):
+        source = open_source(bag)
+    np.testing.assert_allclose(source.poses, np.stack([odom_base(t) for t in scan_stamps]), atol=2e-3)
+    with pytest.raises(PoseSourceError, match="no frame 'base_link' \\(frames: none\\)"):  # a bag without tf
+        open_source(bag, poses="tf:base_link:lidar")
 
 
 @pytest.mark.parametrize("spec", ["tf:map:lidar", "odom:/odom", "auto"])

@@ -8,7 +8,10 @@ Pose specs (``resolve_poses`` / ``open_source(poses=...)``):
   ``PoseWithCovarianceStamped`` topic (several candidates: an error listing
   them). None when the data has no poses - KISS-ICP is never run implicitly.
 * ``"odom:/topic"`` / ``"pose:/topic"`` - a bag topic of any of those pose
-  types (treated as the pose of the LiDAR frame).
+  types, the pose of the LiDAR frame; Odometry of another frame (its
+  ``child_frame_id`` a robot's ``base_link``, not the clouds' ``frame_id``)
+  is carried over to the LiDAR by the bag's tf, and a warning says so when
+  the tf does not connect the two.
 * ``"tf:parent:child"`` - chain ``/tf`` + ``/tf_static`` from frame
   ``parent`` (the world) to frame ``child`` (the LiDAR).
 * ``"file:/path/poses.txt"`` - 12 numbers a line, one line per scan.
@@ -41,6 +44,10 @@ class PoseSourceError(ValueError):
 
 class OutsidePoseRangeWarning(UserWarning):
     """Some scans lie outside the time range of the recorded poses; their poses are NaN."""
+
+
+class OdometryFrameWarning(UserWarning):
+    """Odometry moves another frame than the clouds' and the bag's tf does not connect the two."""
 
 
 # --------------------------------------------------------------------------- poses.txt
@@ -269,4 +276,22 @@ def resolve_poses(source: ScanSource, spec: str | None = "auto", *, progress: bo
     if parsed.kind == "tf":
         return chain_tf(source.tf_samples(), parsed.parent, parsed.child, source.stamps, label=f"{source.name} tf")
     stamps, poses = source.pose_samples(parsed.topic)
-    return interpolate_poses(stamps, poses, source.stamps, label=f"{source.name} {parsed.topic}")
+    poses = interpolate_poses(stamps, poses, source.stamps, label=f"{source.name} {parsed.topic}")
+    return carried_to_lidar(source, parsed.topic, poses)
+
+
+def carried_to_lidar(source: Any, topic: str, poses: np.ndarray) -> np.ndarray:
+    """``poses`` of an odometry topic as the LiDAR's: times the bag's tf from the frame the odometry
+    moves (a robot's ``base_link``) to the clouds' frame, when the two differ. Submaps merged by
+    base_link poses are smeared wherever the LiDAR is turned or tilted against it."""
+    moved, lidar = source.moved_frame(topic), source.cloud_frame()
+    if not moved or not lidar or moved == lidar:
+        return poses
+    try:
+        mounting = chain_tf(source.tf_samples(), moved, lidar, source.stamps, label=f"{source.name} tf")
+    except PoseSourceError:
+        warnings.warn(f"{source.name} {topic}: odometry moves frame '{moved}', the clouds are in '{lidar}', and "
+                      f"the bag's tf does not connect them: its poses are taken as the LiDAR's",
+                      OdometryFrameWarning, stacklevel=2)
+        return poses
+    return poses @ mounting

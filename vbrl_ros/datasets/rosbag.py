@@ -232,6 +232,22 @@ class RosbagSource(ScanSource):
                                        f"{self.path} {topic}")
         return np.array(stamps_ns, dtype=np.int64) / 1e9, poses
 
+    def cloud_frame(self) -> str:
+        """The ``frame_id`` of the first cloud ('' when the bag has none or leaves it empty)."""
+        for connection, _, rawdata in self._reader.messages(self._connections):
+            return self._reader.deserialize(rawdata, connection.msgtype).header.frame_id.lstrip("/")
+        return ""
+
+    def moved_frame(self, topic: str) -> str:
+        """The frame an Odometry topic moves (its first message's ``child_frame_id``); '' for the
+        other pose types, which do not say."""
+        connections = [c for c in self._reader.connections if c.topic == topic]
+        for connection, _, rawdata in self._reader.messages(connections) if connections else ():
+            if connection.msgtype != "nav_msgs/msg/Odometry":
+                return ""
+            return self._reader.deserialize(rawdata, connection.msgtype).child_frame_id.lstrip("/")
+        return ""
+
     def tf_samples(self) -> dict[tuple[str, str], tuple[np.ndarray, np.ndarray, bool]]:
         """Every tf edge in the bag: (parent, child) -> (stamps (m,), T_parent_child (m, 4, 4), static).
 
@@ -240,6 +256,8 @@ class RosbagSource(ScanSource):
         """
         topics = self.topics_of_type(TF_TYPE)
         connections = [c for c in self._reader.connections if c.topic in topics]
+        if not connections:  # rosbags reads every connection when given none
+            return {}
         raw: dict[tuple[str, str], tuple[list[int], list[tuple], list[tuple], bool]] = {}
         for connection, log_ns, rawdata in self._reader.messages(connections):
             static = connection.topic.rstrip("/").endswith("tf_static")
