@@ -21,6 +21,7 @@ from vbrl_ros.datasets.poses import (
     chain_tf,
     interpolate_poses,
     invert_transforms,
+    lidar_mounting,
     parse_pose_spec,
     read_poses_txt,
     write_poses_txt,
@@ -279,3 +280,25 @@ def test_kiss_icp_odometry_recovers_known_motion(tmp_path: Path, capsys: pytest.
     assert translation_error.max() < 0.05, translation_error
     assert np.rad2deg(rotation_error.max()) < 0.5, np.rad2deg(rotation_error)
     assert np.linalg.norm(relative_truth[-1, :3, 3]) > 1.5  # the motion was real, not a trivially small one
+
+
+def test_the_lidar_mounting_is_read_from_the_bag_s_tf_and_told_to_the_node_s_user(tmp_path: Path) -> None:
+    """vbrl replay tells vbrl_node's odometry_lidar_pose (the node has no tf) when a bag's odometry
+    moves base_link; nothing when the odometry moves the clouds' own frame."""
+    from vbrl_ros.tools.replay import mounting_hint
+
+    stamps = np.array([100.1, 100.5])
+    mounted = write_base_link_bag(tmp_path / "mounted", stamps, with_tf=True)
+    mounting = lidar_mounting(open_source(mounted), "/odom")
+    assert (mounting.moved, mounting.lidar) == ("base_link", "lidar")
+    np.testing.assert_allclose(mounting.T_moved_lidar, BASE_LIDAR, atol=1e-12)
+    assert mounting_hint(mounted) == ("odometry on /odom moves 'base_link', the clouds are in 'lidar': run vbrl_node "
+                                      "with -p 'odometry_lidar_pose:=[0.300000, 0.000000, 1.100000, 0.000000, "
+                                      "0.000000, 1.570796]' (the bag's tf)")
+    unmounted = write_base_link_bag(tmp_path / "unmounted", stamps, with_tf=False)
+    assert lidar_mounting(open_source(unmounted, poses="none"), "/odom").T_moved_lidar is None
+    assert mounting_hint(unmounted).endswith("and the bag's tf does not connect them: give vbrl_node "
+                                             "odometry_lidar_pose")
+    own = write_scan_bag(tmp_path / "own", [np.ones((2, 4), np.float32)] * 2, stamps,
+                         np.stack([transform(0.1, (1.0, 0.0, 0.0))] * 2))
+    assert lidar_mounting(open_source(own), "/odom") is None and mounting_hint(own) is None

@@ -280,13 +280,20 @@ def resolve_poses(source: ScanSource, spec: str | None = "auto", *, progress: bo
     return carried_to_lidar(source, parsed.topic, poses)
 
 
+def _other_frames(source: Any, topic: str) -> tuple[str, str] | None:
+    """(the frame ``topic`` moves, the clouds' frame) when both are named and differ."""
+    moved, lidar = source.moved_frame(topic), source.cloud_frame()
+    return (moved, lidar) if moved and lidar and moved != lidar else None
+
+
 def carried_to_lidar(source: Any, topic: str, poses: np.ndarray) -> np.ndarray:
     """``poses`` of an odometry topic as the LiDAR's: times the bag's tf from the frame the odometry
     moves (a robot's ``base_link``) to the clouds' frame, when the two differ. Submaps merged by
     base_link poses are smeared wherever the LiDAR is turned or tilted against it."""
-    moved, lidar = source.moved_frame(topic), source.cloud_frame()
-    if not moved or not lidar or moved == lidar:
+    frames = _other_frames(source, topic)
+    if frames is None:
         return poses
+    moved, lidar = frames
     try:
         mounting = chain_tf(source.tf_samples(), moved, lidar, source.stamps, label=f"{source.name} tf")
     except PoseSourceError:
@@ -295,3 +302,25 @@ def carried_to_lidar(source: Any, topic: str, poses: np.ndarray) -> np.ndarray:
                       OdometryFrameWarning, stacklevel=2)
         return poses
     return poses @ mounting
+
+
+class Mounting(NamedTuple):
+    """Where the clouds' frame sits in the frame an odometry topic moves, by a bag's tf."""
+
+    moved: str
+    lidar: str
+    T_moved_lidar: np.ndarray | None  # None: the bag's tf does not connect the two
+
+
+def lidar_mounting(source: Any, topic: str) -> Mounting | None:
+    """The LiDAR's mounting in the frame ``topic``'s odometry moves, at the first scan; None when
+    the odometry moves the clouds' own frame (or either does not say)."""
+    frames = _other_frames(source, topic)
+    if frames is None:
+        return None
+    moved, lidar = frames
+    try:
+        T = chain_tf(source.tf_samples(), moved, lidar, source.stamps[:1], label=f"{source.name} tf")[0]
+    except PoseSourceError:
+        T = None
+    return Mounting(moved, lidar, None if T is None or np.isnan(T).any() else T)

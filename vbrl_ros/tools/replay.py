@@ -93,6 +93,8 @@ def run(args: argparse.Namespace) -> int:
                    clock=not args.no_clock, clock_hz=args.clock_hz) as player:
         print(f"replaying {player.total} messages from {args.bag} ({', '.join(player.topics)}) "
               f"at {args.rate:g}x", file=sys.stderr, flush=True)
+        if (hint := mounting_hint(args.bag)) is not None:
+            print(hint, file=sys.stderr, flush=True)
         # SIGTERM (e.g. a test harness or launch stopping us) takes the same orderly path as Ctrl-C.
         with Interrupts(threading.Event()) as interrupts:
             try:
@@ -106,6 +108,35 @@ def run(args: argparse.Namespace) -> int:
             return 130
         print(player.stats.summary(args.rate), flush=True)
     return 0
+
+
+def mounting_hint(bag: str | Path) -> str | None:
+    """One line telling ``vbrl_node`` where the LiDAR sits when the bag's odometry moves another frame
+    than its clouds' (a robot's ``base_link``): the node has no tf to look it up."""
+    from scipy.spatial.transform import Rotation
+
+    from vbrl_ros.datasets.base import ScanSourceError
+    from vbrl_ros.datasets.poses import lidar_mounting
+    from vbrl_ros.datasets.rosbag import RosbagSource
+
+    try:
+        source = RosbagSource(bag)
+    except ScanSourceError:  # no single cloud topic: nothing to say about its frame
+        return None
+    try:
+        odometry = source.topics_of_type("nav_msgs/msg/Odometry")
+        mounting = lidar_mounting(source, odometry[0]) if len(odometry) == 1 else None
+    finally:
+        source.close()
+    if mounting is None:
+        return None
+    said = f"odometry on {odometry[0]} moves '{mounting.moved}', the clouds are in '{mounting.lidar}'"
+    if mounting.T_moved_lidar is None:
+        return f"{said}, and the bag's tf does not connect them: give vbrl_node odometry_lidar_pose"
+    T = mounting.T_moved_lidar
+    values = [*T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_euler("xyz")]
+    return (f"{said}: run vbrl_node with -p 'odometry_lidar_pose:=[{', '.join(f'{v:.6f}' for v in values)}]' "
+            f"(the bag's tf)")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
