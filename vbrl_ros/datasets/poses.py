@@ -313,14 +313,16 @@ class Mounting(NamedTuple):
 
 
 def lidar_mounting(source: Any, topic: str) -> Mounting | None:
-    """The LiDAR's mounting in the frame ``topic``'s odometry moves, at the first scan; None when
-    the odometry moves the clouds' own frame (or either does not say)."""
+    """The LiDAR's mounting in the frame ``topic``'s odometry moves, by the bag's static tf (a mount
+    is fixed; robot_state_publisher sends it there); None when the odometry moves the clouds' own
+    frame (or either does not say)."""
     frames = _other_frames(source, topic)
     if frames is None:
         return None
     moved, lidar = frames
     try:
-        T = chain_tf(source.tf_samples(), moved, lidar, source.stamps[:1], label=f"{source.name} tf")[0]
+        T = chain_tf(source.tf_samples(static_only=True), moved, lidar, source.stamps[:1],
+                     label=f"{source.name} tf_static")[0]
     except PoseSourceError:
         T = None
     return Mounting(moved, lidar, None if T is None or np.isnan(T).any() else T)

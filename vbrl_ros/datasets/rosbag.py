@@ -248,13 +248,14 @@ class RosbagSource(ScanSource):
             return self._reader.deserialize(rawdata, connection.msgtype).child_frame_id.lstrip("/")
         return ""
 
-    def tf_samples(self) -> dict[tuple[str, str], tuple[np.ndarray, np.ndarray, bool]]:
+    def tf_samples(self, *, static_only: bool = False) -> dict[tuple[str, str], tuple[np.ndarray, np.ndarray, bool]]:
         """Every tf edge in the bag: (parent, child) -> (stamps (m,), T_parent_child (m, 4, 4), static).
 
-        Reads every TFMessage topic; an edge is static when it came on a
-        topic named ``.../tf_static``. Leading '/' of ROS 1 frame ids is dropped.
+        Reads every TFMessage topic (``static_only``: only ``.../tf_static``, a few messages where
+        ``/tf`` may hold millions); an edge is static when it came on a topic named
+        ``.../tf_static``. Leading '/' of ROS 1 frame ids is dropped.
         """
-        topics = self.topics_of_type(TF_TYPE)
+        topics = [t for t in self.topics_of_type(TF_TYPE) if not static_only or t.rstrip("/").endswith("tf_static")]
         connections = [c for c in self._reader.connections if c.topic in topics]
         if not connections:  # rosbags reads every connection when given none
             return {}

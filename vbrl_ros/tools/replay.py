@@ -126,6 +126,8 @@ def mounting_hint(bag: str | Path) -> str | None:
     try:
         odometry = source.topics_of_type("nav_msgs/msg/Odometry")
         mounting = lidar_mounting(source, odometry[0]) if len(odometry) == 1 else None
+    except Exception:  # a hint never stops a replay; what the player cannot read, it says itself
+        mounting = None
     finally:
         source.close()
     if mounting is None:
