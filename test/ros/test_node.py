@@ -5,6 +5,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -64,6 +65,24 @@ def test_an_unknown_parameter_in_a_params_file_stops_the_start(tmp_path):
     params.write_text("/**:\n  ros__parameters:\n    keyframe_distanse: 2.0\n")
     line = start_fails("--ros-args", "--params-file", str(params))
     assert "unknown parameter 'keyframe_distanse' (did you mean 'keyframe_distance'?)" in line
+
+
+def test_the_shipped_params_file_starts_the_node_and_a_bad_mounting_stops_the_start():
+    """The one array parameter (odometry_lidar_pose) goes through rcl's YAML and -p parsing."""
+    config = Path(__file__).resolve().parents[2] / "config" / "vbrl.yaml"
+    node = subprocess.Popen([*NODE, "--ros-args", "--params-file", str(config)], env=isolated_ros_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    watchdog = threading.Timer(60.0, node.kill)
+    watchdog.start()
+    try:
+        started = any("listening on /points" in line for line in iter(node.stdout.readline, ""))
+    finally:
+        node.send_signal(signal.SIGINT)
+        node.communicate(timeout=60)
+        watchdog.cancel()
+    assert started and node.returncode == 0
+    line = start_fails("--ros-args", "-p", "odometry_lidar_pose:=[0.1, 0.0]")
+    assert "parameter 'odometry_lidar_pose' must be six finite numbers [x, y, z, roll, pitch, yaw]" in line
 
 
 def model_with_text_weights(path: Path) -> Path:
