@@ -3,7 +3,7 @@ from dataclasses import replace
 import numpy as np
 
 from vbrl_ros.detection.database import KeyframeDatabase
-from vbrl_ros.detection.detector import LoopClosureDetector, query_verifier
+from vbrl_ros.detection.detector import LoopClosureDetector, query_verifier, verify_candidates, wants_wider_retry
 from vbrl_ros.detection.registration import SEARCH_MARGIN_M
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.model.builtin import load_default_model
@@ -40,3 +40,81 @@ def test_a_querys_verifier_searches_headings_only_as_far_as_a_closure_is_accepte
         verifier = query_verifier(cloud, DetectorSettings(max_closure_distance=farthest, verification_voxel=0.5))
         assert verifier.search_radius == farthest + SEARCH_MARGIN_M
         assert verifier.voxel == 0.5
+
+
+# -- a degenerate registration retried with wider submaps ------------------------------------------
+
+END_WALL_X = -7.5  # the corridor's end: the only structure that fixes a position along it
+
+
+def corridor_scan(rng: np.random.Generator, x: float, reach: float = 5.0) -> np.ndarray:
+    """A short-range scan from 1 m up at ``x`` in a 6 m wide, 5 m high corridor closed at END_WALL_X:
+    the two walls, the floor and, within ``reach``, the end wall."""
+    def plane(n, xs, ys, zs):
+        return np.c_[rng.uniform(*xs, n), rng.uniform(*ys, n), rng.uniform(*zs, n)]
+    world = np.vstack([plane(6000, (END_WALL_X, 60), (3, 3), (0, 5)), plane(6000, (END_WALL_X, 60), (-3, -3), (0, 5)),
+                       plane(4000, (END_WALL_X, 60), (-3, 3), (0, 0)), plane(800, (END_WALL_X, END_WALL_X), (-3, 3), (0, 5))])
+    near = world[np.abs(world[:, 0] - x) < reach]
+    return (near - [x, 0.0, 1.0]).astype(np.float32)
+
+
+def corridor_revisit(**settings):
+    """A corridor walked twice with odometry, keyframes 1.5 m apart; the second walk's keyframe at
+    -1 m, verified against the first walk's at -1 m: ``(detector, retrieval of that pair, match id)``."""
+    rng = np.random.default_rng(3)
+    model = load_default_model()
+    found = LoopClosureDetector(model, KeyframeDatabase(model.scorer(), model.identity()),
+                                DetectorSettings(top_k=10, exclude_recent_s=30.0, **settings))
+
+    def pose(x):
+        T = np.eye(4)
+        T[0, 3], T[2, 3] = x, 1.0
+        return T
+
+    first_walk = np.arange(-7.0, 21.0, 1.5)
+    for i, x in enumerate(first_walk):
+        found.retrieve(corridor_scan(rng, x), float(i), pose(x))
+    for i, x in enumerate(np.arange(-7.0, -0.9, 1.5)):
+        retrieval = found.retrieve(corridor_scan(rng, x), 1000.0 + i, pose(x))
+    match = int(np.flatnonzero(first_walk == -1.0)[0])
+    k = [c.keyframe_id for c in retrieval.candidates].index(match)
+    only = replace(retrieval, candidates=[retrieval.candidates[k]], candidate_clouds=[retrieval.candidate_clouds[k]],
+                   candidate_frames=[retrieval.candidate_frames[k]])
+    return found, only, match
+
+
+def test_a_registration_that_slides_along_a_corridor_is_retried_with_wider_submaps():
+    """The query's and the match's submaps (two neighbours) see only the walls, which fix nothing
+    along the corridor; with four, both reach the end wall, and the registration holds."""
+    found, retrieval, match = corridor_revisit()
+    first = verify_candidates(retrieval, found.settings)
+    assert first.closures == [] and first.rejections == {"degenerate": 1} and first.degenerate == [0]
+    result = found.verified(retrieval, lambda r: verify_candidates(r, found.settings))
+    assert [c.match_id for c in result.closures] == [match] and result.rejections == {}
+    assert np.linalg.norm(result.closures[0].T_query_match[:3, 3]) < 0.5  # the same place: no slide
+    assert "wider_retry" in result.timings_ms and result.degenerate == []
+
+
+def test_without_submaps_nothing_is_retried():
+    found, retrieval, _ = corridor_revisit(submap_keyframes=0)
+    first = verify_candidates(retrieval, found.settings)
+    assert first.rejections == {"degenerate": 1}
+    assert not wants_wider_retry(first, found.settings) and found.widened(retrieval, first.degenerate) is None
+    again = found.verified(retrieval, lambda r: verify_candidates(r, found.settings))
+    assert again.rejections == first.rejections and "wider_retry" not in again.timings_ms
+
+
+def test_a_wider_retry_adds_what_it_accepted_after_the_closures_already_found():
+    from vbrl_ros.detection.detector import KeyframeResult, LoopClosure, with_wider_retry
+
+    def closure(match_id):
+        return LoopClosure(query_id=9, match_id=match_id, query_stamp=9.0, match_stamp=float(match_id),
+                           query_session="", match_session="", distance=0.1)
+
+    first = KeyframeResult(9, [closure(1)], 5, {"verify": 30.0}, {"degenerate": 3, "low fitness": 1}, [0, 2, 3])
+    retried = KeyframeResult(9, [closure(2), closure(3)], 5, {"verify": 20.0}, {"degenerate": 1}, [])
+    merged = with_wider_retry(first, retried, DetectorSettings(max_closures=2))
+    assert [c.match_id for c in merged.closures] == [1, 2]  # max_closures
+    assert merged.rejections == {"degenerate": 2, "low fitness": 1} and merged.degenerate == []
+    assert merged.timings_ms == {"verify": 30.0, "wider_retry": 20.0}
+    assert not wants_wider_retry(merged, DetectorSettings(max_closures=2))

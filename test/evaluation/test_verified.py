@@ -132,3 +132,36 @@ def test_evaluation_verifies_the_submaps_the_node_would():
     assert [holders(stored, k) for k in range(6)] == [{0, 1}, {0, 1, 2}, {1, 2, 3}, {2, 3, 4}, {3, 4}, {5}]
     assert submap_clouds(clouds, None, stamps, rule, both_sides=True) is clouds
     assert submap_clouds(clouds, poses, stamps, DetectorSettings(submap_keyframes=0), both_sides=True) is clouds
+
+
+def test_the_node_reading_takes_a_wider_retry_only_when_nothing_passed_as_it_was():
+    """As the node: it retries degenerate registrations with wider submaps only after none of its
+    candidates passed, so a retried acceptance never comes before a plain one."""
+    retried = checked([[0.30, 0.40], [0.30, 0.10]], [[None, None], [None, "low fitness"]])
+    retried = VerifiedCandidates(retried.fitness, retried.rejection, retried.T_query_match,
+                                 np.array([[True, False], [True, False]]))
+    candidates = Candidates(np.array([[4, 7], [5, 6]]), np.array([[1.0, 2.0], [1.5, 2.5]]))
+    indices, _ = node_decision(candidates, retried, INF, min_fitness=0.2, top_k=2)
+    np.testing.assert_array_equal(indices[:, 0], [7, 5])
+
+
+def corridor(rng: np.random.Generator, end_wall: bool) -> np.ndarray:
+    """18 m of a 6 m wide corridor seen from its middle, 1 m up; ``end_wall``: closed at x = -6."""
+    def plane(n, xs, ys, zs):
+        return np.c_[rng.uniform(*xs, n), rng.uniform(*ys, n), rng.uniform(*zs, n)]
+    parts = [plane(3000, (-6, 12), (3, 3), (-1, 4)), plane(3000, (-6, 12), (-3, -3), (-1, 4)),
+             plane(2000, (-6, 12), (-3, 3), (-1, -1))]
+    return np.vstack(parts + ([plane(600, (-6, -6), (-3, 3), (-1, 4))] if end_wall else [])).astype(np.float32)
+
+
+def test_evaluation_retries_a_degenerate_registration_with_the_wider_clouds_as_the_node_does():
+    rng = np.random.default_rng(4)
+    narrow = KeyframeClouds([corridor(rng, False), corridor(rng, False)], [np.eye(4)] * 2)
+    wider = KeyframeClouds([corridor(rng, True), corridor(rng, True)], [np.eye(4)] * 2)
+    candidates = Candidates(np.array([[0]]), np.array([[1.0]]))
+    rule = DetectorSettings()
+    plain = verify_candidates(narrow, None, candidates, rule, workers=1, progress=False)
+    assert plain.rejection[0, 0] == "degenerate" and plain.fitness[0, 0] >= 0.2 and not plain.retried.any()
+    again = verify_candidates(narrow, None, candidates, rule, wider=(wider, None), workers=1, progress=False)
+    assert again.rejection[0, 0] is None and again.retried[0, 0]
+    assert np.linalg.norm(again.T_query_match[0, 0][:3, 3]) < 0.5

@@ -25,7 +25,13 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from vbrl_ros.detection.detector import closure_rejection, query_verifier, submap_gap_s, to_sensor_frames
+from vbrl_ros.detection.detector import (
+    WIDER_RETRY_FITNESS,
+    closure_rejection,
+    query_verifier,
+    submap_gap_s,
+    to_sensor_frames,
+)
 from vbrl_ros.detection.registration import QueryVerifier
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.detection.submaps import KeyframeView, merged_cloud, neighbour_steps
@@ -51,6 +57,8 @@ class VerifiedCandidates:
     fitness: np.ndarray  # (n, k), NaN for padding
     rejection: np.ndarray  # (n, k) object: the rule's reason at fitness 0 (None: accepted)
     T_query_match: np.ndarray  # (n, k, 4, 4) between the sensors, NaN for padding
+    # (n, k) bool: accepted only when retried with wider submaps (detector.WIDER_RETRY_FITNESS)
+    retried: np.ndarray | None = None
 
     def accepted_at(self, min_fitness: float) -> np.ndarray:
         """(n, k) bool: converged, constrained, near enough and at least ``min_fitness``."""
@@ -67,74 +75,97 @@ class KeyframeClouds:
 
 
 def submap_clouds(clouds: KeyframeClouds, poses: np.ndarray | None, stamps: np.ndarray,
-                  settings: DetectorSettings, *, both_sides: bool) -> KeyframeClouds:
-    """Every keyframe's cloud as the node verifies it under ``settings`` (``submap_keyframes``,
-    :mod:`~vbrl_ros.detection.submaps`): queries see only their past (``both_sides`` False),
-    stored keyframes both sides. The source's poses stand for the node's odometry; without
-    poses, or with ``submap_keyframes`` 0, the single clouds."""
+                  settings: DetectorSettings, *, both_sides: bool, neighbours: int | None = None) -> KeyframeClouds:
+    """Every keyframe's cloud as the node verifies it under ``settings`` (``submap_keyframes``, or
+    ``neighbours`` for a wider retry; :mod:`~vbrl_ros.detection.submaps`): queries see only their
+    past (``both_sides`` False), stored keyframes both sides. The source's poses stand for the
+    node's odometry; without poses, or with ``submap_keyframes`` 0, the single clouds."""
     if poses is None or settings.submap_keyframes == 0:
         return clouds
     n, gap = len(clouds.clouds), submap_gap_s(settings)
     views = [KeyframeView(clouds.clouds[i], clouds.frames[i], poses[i], float(stamps[i])) for i in range(n)]
-    steps = neighbour_steps(settings.submap_keyframes, both_sides=both_sides)
+    steps = neighbour_steps(neighbours or settings.submap_keyframes, both_sides=both_sides)
     merged = [merged_cloud(views[i], [views[i + s] for s in steps if 0 <= i + s < n],
                            settings.verification_voxel, gap) for i in range(n)]
     return KeyframeClouds(merged, clouds.frames)
 
 
-_worker: tuple[KeyframeClouds, KeyframeClouds, DetectorSettings] | None = None
+@dataclass(frozen=True)
+class _Work:
+    queries: KeyframeClouds
+    database: KeyframeClouds
+    settings: DetectorSettings  # the rule without its fitness threshold: fitness is swept afterwards
+    wider: tuple[KeyframeClouds, KeyframeClouds] | None
+    retry_fitness: float  # a degenerate registration overlapping this much is retried wider
+
+
+_worker: _Work | None = None
 # The last query's verifier: tasks come query by query, so a worker often gets several
 # candidates of one query in a row and prepares the query once for them.
 _last_query: tuple[int, QueryVerifier] | None = None
 
 
-def _init_worker(queries: KeyframeClouds, database: KeyframeClouds | None, settings: DetectorSettings) -> None:
+def _init_worker(queries: KeyframeClouds, database: KeyframeClouds | None, settings: DetectorSettings,
+                 wider: tuple[KeyframeClouds, KeyframeClouds | None] | None) -> None:
     global _worker, _last_query
-    # the rule without its fitness threshold: fitness is swept afterwards
-    _worker = (queries, database or queries, DetectorSettings(**{**settings.__dict__, "min_fitness": 0.0}))
+    _worker = _Work(queries, database or queries, DetectorSettings(**{**settings.__dict__, "min_fitness": 0.0}),
+                    None if wider is None else (wider[0], wider[1] or wider[0]),
+                    WIDER_RETRY_FITNESS * settings.min_fitness)
     _last_query = None
 
 
-def _verify(task: tuple[int, int]) -> tuple[float, str | None, np.ndarray]:
+def _verify(task: tuple[int, int]) -> tuple[float, str | None, np.ndarray, bool]:
     global _last_query
     assert _worker is not None
-    queries, database, settings = _worker
-    query, match = task
+    work, (query, match) = _worker, task
     if _last_query is None or _last_query[0] != query:
-        _last_query = (query, query_verifier(queries.clouds[query], settings, max_threads=1))
-    check = _last_query[1].verify(database.clouds[match])
-    T, _ = to_sensor_frames(check, queries.frames[query], database.frames[match])
-    return check.fitness, closure_rejection(check, T, settings), T
+        _last_query = (query, query_verifier(work.queries.clouds[query], work.settings, max_threads=1))
+    check = _last_query[1].verify(work.database.clouds[match])
+    T, _ = to_sensor_frames(check, work.queries.frames[query], work.database.frames[match])
+    reason = closure_rejection(check, T, work.settings)
+    if reason == "degenerate" and work.wider is not None and check.fitness >= work.retry_fitness:
+        # as the node: once more with submaps of twice the neighbours (detector.LoopClosureDetector.verified)
+        wider_queries, wider_database = work.wider
+        again = query_verifier(wider_queries.clouds[query], work.settings, max_threads=1).verify(
+            wider_database.clouds[match])
+        T_again, _ = to_sensor_frames(again, work.queries.frames[query], work.database.frames[match])
+        if closure_rejection(again, T_again, work.settings) is None:
+            return again.fitness, None, T_again, True
+    return check.fitness, reason, T, False
 
 
 def verify_candidates(queries: KeyframeClouds, database: KeyframeClouds | None, candidates: Candidates,
-                      settings: DetectorSettings, *, workers: int | None = None, progress: bool = True,
+                      settings: DetectorSettings, *, wider: tuple[KeyframeClouds, KeyframeClouds | None] | None = None,
+                      workers: int | None = None, progress: bool = True,
                       description: str = "verifying") -> VerifiedCandidates:
-    """Register every candidate as the node does; ``database`` None: the queries' own (P1)."""
+    """Register every candidate as the node does; ``database`` None: the queries' own (P1). With
+    ``wider`` (the queries' and the database's clouds from submaps of twice the neighbours), a
+    degenerate registration is retried with them, as the node retries it."""
     n, k = candidates.indices.shape
     fitness = np.full((n, k), np.nan)
     rejection = np.full((n, k), "no candidate", dtype=object)
     transforms = np.full((n, k, 4, 4), np.nan)
+    retried = np.zeros((n, k), dtype=bool)
     slots = [(q, r) for q in range(n) for r in range(k) if candidates.indices[q, r] >= 0]
     tasks = [(q, int(candidates.indices[q, r])) for q, r in slots]
     workers = default_workers() if workers is None else workers
     bar = tqdm(total=len(tasks), desc=description, unit="pair", disable=not progress, leave=False)
+    initargs = (queries, database, settings, wider)
     try:
         if workers <= 1:
-            _init_worker(queries, database, settings)
+            _init_worker(*initargs)
             results = map(_verify, tasks)
-            for (q, r), (f, why, T) in zip(slots, results):
-                fitness[q, r], rejection[q, r], transforms[q, r] = f, why, T
+            for (q, r), (f, why, T, again) in zip(slots, results):
+                fitness[q, r], rejection[q, r], transforms[q, r], retried[q, r] = f, why, T, again
                 bar.update()
         else:
-            with ProcessPoolExecutor(workers, initializer=_init_worker,
-                                     initargs=(queries, database, settings)) as pool:
-                for (q, r), (f, why, T) in zip(slots, bounded_map(pool, _verify, tasks, 8 * workers)):
-                    fitness[q, r], rejection[q, r], transforms[q, r] = f, why, T
+            with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=initargs) as pool:
+                for (q, r), (f, why, T, again) in zip(slots, bounded_map(pool, _verify, tasks, 8 * workers)):
+                    fitness[q, r], rejection[q, r], transforms[q, r], retried[q, r] = f, why, T, again
                     bar.update()
     finally:
         bar.close()
-    return VerifiedCandidates(fitness, rejection, transforms)
+    return VerifiedCandidates(fitness, rejection, transforms, retried)
 
 
 def best_verified(candidates: Candidates, verified: VerifiedCandidates) -> tuple[np.ndarray, np.ndarray]:
@@ -154,6 +185,9 @@ def node_decision(candidates: Candidates, verified: VerifiedCandidates, distance
     """What the node publishes per query: the first of its ``top_k`` candidates within
     ``distance_threshold`` that the rule accepts at ``min_fitness``; ``(indices (n, 1), 0 or inf)``."""
     ok = verified.accepted_at(min_fitness)[:, :top_k] & (candidates.distances[:, :top_k] <= distance_threshold)
+    if verified.retried is not None:  # the node retries wider only when no candidate passed as it was
+        plain = ok & ~verified.retried[:, :top_k]
+        ok = np.where(plain.any(axis=1, keepdims=True), plain, ok)
     first = np.argmax(ok, axis=1)
     found = ok.any(axis=1)
     indices = np.where(found, candidates.indices[np.arange(len(first)), first], -1)[:, None]

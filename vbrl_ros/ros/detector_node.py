@@ -319,7 +319,7 @@ class VbrlNode(Node):
         while (item := self._retrievals.take()) is not None:
             retrieval, arrived = item
             try:
-                result = self._verifier.verify(retrieval)
+                result = self.detector.verified(retrieval, self._verifier.verify, self._db_lock)
             except VerifierError as error:  # the process is started again for the next keyframe
                 self.stats.count("verification_errors")
                 self.get_logger().error(f"keyframe {retrieval.keyframe_id} not verified: {error}")

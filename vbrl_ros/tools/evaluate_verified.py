@@ -102,7 +102,8 @@ def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, databas
         k = min(rule.top_k, results.k)
         candidates = Candidates(results.indices[:, :k], results.distances[:, :k])
         query_clouds, database_clouds = verified_clouds(queries, database, rule)
-        verified = verify_candidates(query_clouds, database_clouds, candidates, rule, workers=args.workers,
+        verified = verify_candidates(query_clouds, database_clouds, candidates, rule,
+                                     wider=wider_clouds(queries, database, rule), workers=args.workers,
                                      progress=not args.quiet, description=f"verifying {name}")
         outputs.checked[name] = (candidates, verified)
         indices, distances = best_verified(candidates, verified)
@@ -127,13 +128,24 @@ def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, databas
     return outputs
 
 
-def verified_clouds(queries: SourceDescriptors, database: SourceDescriptors,
-                    rule: DetectorSettings) -> tuple[KeyframeClouds, KeyframeClouds]:
+def verified_clouds(queries: SourceDescriptors, database: SourceDescriptors, rule: DetectorSettings, *,
+                    neighbours: int | None = None) -> tuple[KeyframeClouds, KeyframeClouds]:
     """The queries' and the database's clouds as the node verifies them under ``rule``: submaps
-    of the queries' past and of the stored keyframes' both sides (the same source for P1)."""
+    of the queries' past and of the stored keyframes' both sides (the same source for P1), of
+    ``neighbours`` (default: the rule's ``submap_keyframes``)."""
     def submaps(source: SourceDescriptors, both_sides: bool) -> KeyframeClouds:
-        return submap_clouds(source.clouds, source.poses, source.stamps, rule, both_sides=both_sides)
+        return submap_clouds(source.clouds, source.poses, source.stamps, rule, both_sides=both_sides,
+                             neighbours=neighbours)
     return submaps(queries, False), submaps(database, True)
+
+
+def wider_clouds(queries: SourceDescriptors, database: SourceDescriptors,
+                 rule: DetectorSettings) -> tuple[KeyframeClouds, KeyframeClouds] | None:
+    """The clouds a degenerate registration is retried with, as the node retries it: submaps of
+    twice the rule's neighbours; None without submaps (no poses, or ``submap_keyframes`` 0)."""
+    if rule.submap_keyframes == 0 or queries.poses is None or database.poses is None:
+        return None
+    return verified_clouds(queries, database, rule, neighbours=2 * rule.submap_keyframes)
 
 
 def format_points(outputs: VerifiedOutputs, radii: list[float]) -> str:

@@ -128,7 +128,7 @@ def evaluate(source, model, rule, progress: bool) -> dict:
     from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod
     from vbrl_ros.evaluation.metrics import evaluate_online
     from vbrl_ros.evaluation.retrieval import online_retrieval
-    from vbrl_ros.tools.evaluate_verified import verified_clouds
+    from vbrl_ros.tools.evaluate_verified import verified_clouds, wider_clouds
     from vbrl_ros.evaluation.verified import (
         Candidates,
         best_verified,
@@ -144,7 +144,8 @@ def evaluate(source, model, rule, progress: bool) -> dict:
         m = evaluate_online(source.positions, results.indices, results.distances, RADIUS_M, EXCLUDE)
         row = {"max_f1": m.max_f1, "recall_at_1": m.recall_at_1, "revisits": m.num_revisits}
         candidates = Candidates(results.indices[:, :rule.top_k], results.distances[:, :rule.top_k])
-        checked = verify_candidates(*verified_clouds(source, source, rule), candidates, rule, progress=progress,
+        checked = verify_candidates(*verified_clouds(source, source, rule), candidates, rule,
+                                    wider=wider_clouds(source, source, rule), progress=progress,
                                     description=f"verifying {method.name}")
         swept = evaluate_online(source.positions, *best_verified(candidates, checked), RADIUS_M, EXCLUDE)
         decided, decision = node_decision(candidates, checked, math.inf, rule.min_fitness, rule.top_k)
