@@ -96,14 +96,14 @@ def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, databas
     ``score``: the protocol's metrics at every radius."""
     rule = settings(args, args.min_fitness[0])
     outputs = VerifiedOutputs(rule, tuple(sorted(set(args.min_fitness))))
+    # merged once, verified for every method
+    clouds, wider = verified_clouds(queries, database, rule), wider_clouds(queries, database, rule)
     for name, (method, results) in retrieved.items():
         if name not in (FULL_NAME, SCAN_CONTEXT):
             continue  # ablations: retrieval only
         k = min(rule.top_k, results.k)
         candidates = Candidates(results.indices[:, :k], results.distances[:, :k])
-        query_clouds, database_clouds = verified_clouds(queries, database, rule)
-        verified = verify_candidates(query_clouds, database_clouds, candidates, rule,
-                                     wider=wider_clouds(queries, database, rule), workers=args.workers,
+        verified = verify_candidates(*clouds, candidates, rule, wider=wider, workers=args.workers,
                                      progress=not args.quiet, description=f"verifying {name}")
         outputs.checked[name] = (candidates, verified)
         indices, distances = best_verified(candidates, verified)

@@ -138,14 +138,14 @@ def evaluate(source, model, rule, progress: bool) -> dict:
     )
 
     out = {}
+    clouds, wider = verified_clouds(source, source, rule), wider_clouds(source, source, rule)  # once for both methods
     for name, method in (("vbrl", VBRLMethod("VBRL", model, prune=0.0001)),
                          ("scan_context", ScanContextMethod(ScanContextConfig()))):
         results = online_retrieval(len(source), EXCLUDE, 5, method.distances_fn(source, source), progress)
         m = evaluate_online(source.positions, results.indices, results.distances, RADIUS_M, EXCLUDE)
         row = {"max_f1": m.max_f1, "recall_at_1": m.recall_at_1, "revisits": m.num_revisits}
         candidates = Candidates(results.indices[:, :rule.top_k], results.distances[:, :rule.top_k])
-        checked = verify_candidates(*verified_clouds(source, source, rule), candidates, rule,
-                                    wider=wider_clouds(source, source, rule), progress=progress,
+        checked = verify_candidates(*clouds, candidates, rule, wider=wider, progress=progress,
                                     description=f"verifying {method.name}")
         swept = evaluate_online(source.positions, *best_verified(candidates, checked), RADIUS_M, EXCLUDE)
         decided, decision = node_decision(candidates, checked, math.inf, rule.min_fitness, rule.top_k)
