@@ -320,9 +320,9 @@ def lidar_mounting(source: Any, topic: str) -> Mounting | None:
     if frames is None:
         return None
     moved, lidar = frames
-    try:
+    try:  # static edges hold at every time: never NaN
         T = chain_tf(source.tf_samples(static_only=True), moved, lidar, source.stamps[:1],
                      label=f"{source.name} tf_static")[0]
     except PoseSourceError:
         T = None
-    return Mounting(moved, lidar, None if T is None or np.isnan(T).any() else T)
+    return Mounting(moved, lidar, T)

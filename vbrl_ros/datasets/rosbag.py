@@ -232,6 +232,10 @@ class RosbagSource(ScanSource):
                                        f"{self.path} {topic}")
         return np.array(stamps_ns, dtype=np.int64) / 1e9, poses
 
+    def _messages_of(self, connections: list) -> Iterator[tuple[Any, int, bytes]]:
+        """The messages of ``connections``; none for none (rosbags reads every connection then)."""
+        return self._reader.messages(connections) if connections else iter(())
+
     def cloud_frame(self) -> str:
         """The ``frame_id`` of the first cloud ('' when the bag has none or leaves it empty)."""
         for connection, _, rawdata in self._reader.messages(self._connections):
@@ -241,8 +245,7 @@ class RosbagSource(ScanSource):
     def moved_frame(self, topic: str) -> str:
         """The frame an Odometry topic moves (its first message's ``child_frame_id``); '' for the
         other pose types, which do not say."""
-        connections = [c for c in self._reader.connections if c.topic == topic]
-        for connection, _, rawdata in self._reader.messages(connections) if connections else ():
+        for connection, _, rawdata in self._messages_of([c for c in self._reader.connections if c.topic == topic]):
             if connection.msgtype != "nav_msgs/msg/Odometry":
                 return ""
             return self._reader.deserialize(rawdata, connection.msgtype).child_frame_id.lstrip("/")
@@ -257,10 +260,8 @@ class RosbagSource(ScanSource):
         """
         topics = [t for t in self.topics_of_type(TF_TYPE) if not static_only or t.rstrip("/").endswith("tf_static")]
         connections = [c for c in self._reader.connections if c.topic in topics]
-        if not connections:  # rosbags reads every connection when given none
-            return {}
         raw: dict[tuple[str, str], tuple[list[int], list[tuple], list[tuple], bool]] = {}
-        for connection, log_ns, rawdata in self._reader.messages(connections):
+        for connection, log_ns, rawdata in self._messages_of(connections):
             static = connection.topic.rstrip("/").endswith("tf_static")
             for transform in self._reader.deserialize(rawdata, connection.msgtype).transforms:
                 edge = (transform.header.frame_id.lstrip("/"), transform.child_frame_id.lstrip("/"))

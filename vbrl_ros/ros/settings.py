@@ -140,8 +140,9 @@ class NodeSettings:
     @classmethod
     def from_values(cls, values: dict[str, Any]) -> "NodeSettings":
         """Build from parameter values, checking types and ranges; errors name the parameter."""
-        kinds = {f.name: type(getattr(cls(), f.name)) for f in fields(cls) if f.name != "detector"}
-        kinds.update({name: type(getattr(DetectorSettings(), name)) for name in DETECTOR_PARAMETERS})
+        default = cls()
+        kinds = {f.name: type(getattr(default, f.name)) for f in fields(cls) if f.name != "detector"}
+        kinds.update({name: type(getattr(default.detector, name)) for name in DETECTOR_PARAMETERS})
         clean: dict[str, Any] = {}
         for name, value in values.items():
             if name not in kinds:
