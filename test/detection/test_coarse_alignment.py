@@ -114,3 +114,17 @@ def test_translations_beyond_the_search_radius_are_not_searched(run):
     with pytest.raises(ValueError, match="max_shift_m"):
         HeadingSearch(query, max_shift_m=0.0)
 
+
+
+def test_the_first_overlay_is_the_best_peak_and_the_others_are_other_headings(run):
+    (q, m), = revisits(run, turned_deg=150.0, count=1)
+    query, match = structure(run.scan(q).points), structure(run.scan(m).points)
+    search = HeadingSearch(query)
+    overlays = search.alignments(match, 4)
+    assert 2 <= len(overlays) <= 4
+    np.testing.assert_array_equal(overlays[0].T_query_match, search.align(match).T_query_match)
+    yaws = np.degrees([yaw_of(o.T_query_match) for o in overlays])
+    gaps = np.abs((yaws[:, None] - yaws[None, :] + 180.0) % 360.0 - 180.0)[np.triu_indices(len(yaws), 1)]
+    assert gaps.min() >= YAW_STEP_DEG  # one per summit of the peaks over headings
+    assert all(o.score <= overlays[0].score + 1e-9 for o in overlays)
+    assert len(search.alignments(np.empty((0, 3)), 4)) == 1

@@ -123,14 +123,30 @@ class HeadingSearch:
     def align(self, match_structure: np.ndarray) -> CoarseAlignment:
         """The yaw and x, y that best overlay ``match_structure`` ((N, 3) levelled, non-ground
         points) on the query's, as ``T_query_match``."""
+        return self.alignments(match_structure, 1)[0]
+
+    def alignments(self, match_structure: np.ndarray, count: int) -> list[CoarseAlignment]:
+        """Up to ``count`` overlays of ``match_structure`` on the query's, best peak first: the
+        headings whose peak is higher than both neighbouring headings', each placed as
+        :meth:`align` places the best. A square courtyard or a crossing overlays almost as well
+        turned by 90 degrees; a caller that can tell the overlays apart by what both sensors saw
+        (:func:`~vbrl_ros.detection.overlap.covisible_overlap`) picks among them."""
         match_xy = np.asarray(match_structure, dtype=np.float64)[:, :2]
         side = 2 * self.limit + 1
         peaks = np.concatenate([
             self._correlate(match_xy, _YAWS[k:k + _YAWS_PER_STACK]).reshape(-1, side * side).max(axis=1)
             for k in range(0, len(_YAWS), _YAWS_PER_STACK)])
-        best = int(np.argmax(peaks))
-        if peaks[best] <= 0:
-            return CoarseAlignment(np.eye(4), 0.0)
+        if peaks.max() <= 0:
+            return [CoarseAlignment(np.eye(4), 0.0)]
+        # local maxima over the circle of headings (a plateau counts once: ">" on one side)
+        summits = np.flatnonzero((peaks > np.roll(peaks, 1)) & (peaks >= np.roll(peaks, -1)) & (peaks > 0))
+        if len(summits) == 0:  # every heading equal
+            summits = np.array([int(np.argmax(peaks))])
+        best = summits[np.argsort(-peaks[summits], kind="stable")][:max(int(count), 1)]
+        return [self._placed(match_xy, peaks, int(b)) for b in best]
+
+    def _placed(self, match_xy: np.ndarray, peaks: np.ndarray, best: int) -> CoarseAlignment:
+        """The overlay at heading ``best``: yaw and shift refined between the steps and cells."""
         step = np.deg2rad(YAW_STEP_DEG)
         yaw = _YAWS[best] + step * _vertex(peaks[best - 1], peaks[best], peaks[(best + 1) % len(_YAWS)])
         window = self._correlate(match_xy, np.array([yaw]))[0]
