@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from vbrl_ros.detection.overlap import MIN_CONSTRAINT, MIN_FACING_AREA_M2, agreement, is_constrained
+from vbrl_ros.detection.overlap import MIN_CONSTRAINT, MIN_FACING_AREA_M2, agreement, covisible_overlap, is_constrained
+from vbrl_ros.detection.prepared_cloud import PreparedCloud
 
 
 def no_ground(points: np.ndarray) -> np.ndarray:
@@ -118,3 +119,18 @@ def test_ground_is_left_out_and_too_little_structure_scores_zero():
 
     found = agreement(floor, floor.copy(), np.eye(4), 1.0, is_floor)
     assert found.overlap == 0.0 and found.constraint == 0.0
+
+
+def test_the_plan_view_overlap_tells_a_room_from_itself_turned():
+    # what the heading search's overlays are compared by: the same room overlays fully, turned
+    # by 90 degrees (its walls crossing) or moved off its walls it does not
+    rng = np.random.default_rng(5)
+    a, b = (PreparedCloud.of_thinned(room(rng), 1.0, np.zeros(4000, dtype=bool)) for _ in range(2))
+    turned, moved = np.eye(4), np.eye(4)
+    turned[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]
+    moved[:3, 3] = [3.0, 2.0, 0.0]
+    same = covisible_overlap(a, b, np.eye(4))
+    assert same > 0.9
+    assert covisible_overlap(a, b, turned) < 0.5 * same and covisible_overlap(a, b, moved) < 0.5 * same
+    empty = PreparedCloud.of_thinned(np.empty((0, 3)), 1.0, np.zeros(0, dtype=bool))
+    assert covisible_overlap(a, empty, np.eye(4)) == 0.0

@@ -91,10 +91,29 @@ def agreement_of(query: PreparedCloud, match: PreparedCloud, T_query_match: np.n
     q_in_match, m_in_query = (q_structure - t) @ R, m_structure @ R.T + t
     to_match, nearest = match.tree.query(q_in_match, distance_upper_bound=voxel)
     to_query, _ = query.tree.query(m_in_query, distance_upper_bound=near)
-    overlap = min(_share(to_match < near, match.horizon.sees(q_in_match)),
-                  _share(to_query < near, query.horizon.sees(m_in_query)))
+    overlap = _covisible_share(query, match, q_in_match, to_match < near, m_in_query, to_query < near)
     inlier = to_match < voxel
     return Agreement(overlap, *_constraint(match, nearest[inlier], q_structure[inlier], R, voxel))
+
+
+def covisible_overlap(query: PreparedCloud, match: PreparedCloud, T_query_match: np.ndarray) -> float:
+    """The overlap of :func:`agreement_of` seen from above, cell by cell (``PreparedCloud.plan``):
+    the smaller share of each cloud's occupied cells that the other sensor could see and that
+    land in or beside an occupied cell of the other. It tells apart the overlays of a heading
+    search, which are a metre and a few degrees off, before any of them is refined."""
+    R, t = T_query_match[:2, :2], T_query_match[:2, 3]
+    q_cells, m_cells = query.plan.centres, match.plan.centres
+    if min(len(q_cells), len(m_cells)) < _MIN_STRUCTURE:
+        return 0.0
+    q_in_match, m_in_query = (q_cells - t) @ R, m_cells @ R.T + t
+    return _covisible_share(query, match, q_in_match, match.plan.near(q_in_match), m_in_query,
+                            query.plan.near(m_in_query))
+
+
+def _covisible_share(query: PreparedCloud, match: PreparedCloud, q_in_match: np.ndarray, q_near: np.ndarray,
+                     m_in_query: np.ndarray, m_near: np.ndarray) -> float:
+    """The smaller of the two clouds' shares of near points among those the other sensor could see."""
+    return min(_share(q_near, match.horizon.sees(q_in_match)), _share(m_near, query.horizon.sees(m_in_query)))
 
 
 def _share(near: np.ndarray, visible: np.ndarray) -> float:
