@@ -56,7 +56,7 @@ from kiss_icp.mapping import VoxelHashMap
 from kiss_icp.registration import Registration
 
 from vbrl_ros.detection.coarse_alignment import MAX_SHIFT_M
-from vbrl_ros.detection.overlap import agreement_of, is_constrained
+from vbrl_ros.detection.overlap import agreement_of, covisible_overlap, is_constrained
 from vbrl_ros.detection.pose_covariance import inlier_statistics
 from vbrl_ros.detection.prepared_cloud import MAX_POINT_RANGE_M, PreparedCloud, thinned
 
@@ -76,6 +76,16 @@ SEARCHED_COARSE_STRUCTURE = 400
 # the ground stays): ICP's cost grows with them, and its pose did not improve beyond 1200 on
 # simulated 64-beam revisits (~2200 at a 1 m voxel); sparser sensors never reach it.
 FINE_SOURCE_STRUCTURE = 1200
+# The heading search's best overlays (one per heading whose peak beats its neighbours') that are
+# compared by what both sensors saw before one is refined: in a square courtyard or at a
+# crossing the overlay turned by 90 degrees correlates almost as well, and with part of the
+# circle hidden (a mast, a hand-held sensor's operator) it often correlated better.
+HEADING_HYPOTHESES = 4
+# ... compared by their co-visible overlap seen from above (overlap.covisible_overlap); another
+# heading replaces the best peak's only when its overlap is at least this much higher (0.05
+# refused right headings in a square courtyard; 0 cost a forward-looking sensor a few closures
+# in rain).
+HYPOTHESIS_MARGIN = 0.02
 #: The heading search looks this far beyond the farthest closure the caller accepts: its peak is
 #: a cell off at worst, and ICP may still pull a registration back inside.
 SEARCH_MARGIN_M = 2.0
@@ -204,9 +214,14 @@ class QueryVerifier:
             return _failure(np.eye(4) if guess is None else guess, n_query=n_structure)
         if guess is not None:
             return self._register(match, guess, searched=False, laps=laps)
-        overlay = query.heading_search(self.search_radius).align(match.structure)
+        overlays = query.heading_search(self.search_radius).alignments(match.structure, HEADING_HYPOTHESES)
         laps.lap("heading search")
-        return self._register(match, overlay.T_query_match, searched=True, laps=laps)
+        if len(overlays) > 1:
+            scores = [covisible_overlap(query, match, o.T_query_match) for o in overlays]
+            best = int(np.argmax(scores))
+            overlays = [overlays[best if scores[best] >= scores[0] + HYPOTHESIS_MARGIN else 0]]
+            laps.lap("heading hypotheses")
+        return self._register(match, overlays[0].T_query_match, searched=True, laps=laps)
 
     def _register(self, match: PreparedCloud, guess: np.ndarray, *, searched: bool, laps: _Laps) -> Verification:
         """KISS-ICP from ``guess``, then the evidence; ``searched``: the guess came from the heading
