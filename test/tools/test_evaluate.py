@@ -199,3 +199,29 @@ def test_a_missing_path_fails_before_any_source_is_described(missing, tmp_path, 
     error = capsys.readouterr().err.strip()
     assert "\n" not in error and f"{absent} does not exist" in error
     assert error.startswith("vbrl eval: error: " + ("QUERY_SOURCE" if missing == "query" else missing))
+
+
+def test_a_hidden_wedge_reaches_both_methods_and_the_report(trained, tmp_path, monkeypatch, capsys):
+    from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
+    from vbrl_ros.evaluation.methods import describe_source
+
+    (summer, _), model = trained
+    config, sc = load_model(model).config, ScanContextConfig()
+    plain, hidden = (describe_source(summer, config, sc, progress=False, workers=1, verification_voxel=1.0,
+                                     blocked_azimuth=wedge) for wedge in (None, (90.0, -90.0)))
+    # the half behind the sensor (Scan Context's sectors 15-44 start at +x, counter-clockwise) is gone
+    assert np.abs(plain.scan_context[:, :, 16:44]).sum() > 0
+    assert not hidden.scan_context[:, :, 16:44].any() and hidden.scan_context[:, :, :14].any()
+    assert not np.allclose(plain.vbrl, hidden.vbrl)
+    assert sum(map(len, hidden.clouds.clouds)) < 0.7 * sum(map(len, plain.clouds.clouds))
+
+    out = tmp_path / "hidden.json"
+    assert vbrl(monkeypatch, "eval", summer, "--model", model, "--no-ablations", "--no-scan-context",
+                "--blocked-azimuth", "90", "-90", "--json", out, "--quiet", "--workers", "1") == 0
+    report = _read(out)
+    assert report["blocked_azimuth"] == [90.0, -90.0]
+    assert any("-90 degrees" in note for note in report["notes"])
+    capsys.readouterr()
+    assert vbrl(monkeypatch, "eval", summer, "--model", model, "--blocked-azimuth", "30", "30", "--quiet") == 2
+    assert capsys.readouterr().err.strip() == ("vbrl eval: error: --blocked-azimuth must be (start, end) in "
+                                               "[-180, 180] degrees spanning less than a full turn, got [30.0, 30.0]")

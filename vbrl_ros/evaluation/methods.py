@@ -39,6 +39,7 @@ from vbrl_ros.evaluation.baselines.scan_context import (
     ScanContextDatabase,
     scan_context,
 )
+from vbrl_ros.datasets.blocked_wedge import outside_wedge
 from vbrl_ros.datasets.keyframe_selection import select_keyframes, source_points
 from vbrl_ros.detection.detector import verification_cloud
 from vbrl_ros.evaluation.verified import KeyframeClouds
@@ -102,16 +103,21 @@ def describe_source(
     progress: bool = True,
     translation_search: float = 0.0,
     verification_voxel: float | None = None,
+    blocked_azimuth: tuple[float, float] | None = None,
 ) -> SourceDescriptors:
     """Read the keyframes of ``path`` once and compute both descriptors of each (and the VBRL
     views of :func:`~vbrl_ros.index.translation_search.view_offsets` for ``translation_search`` > 0;
-    with ``verification_voxel`` also the clouds the node would keep for verification)."""
+    with ``verification_voxel`` also the clouds the node would keep for verification).
+    ``blocked_azimuth``: a wedge of every scan (sensor frame, degrees) hidden first, as a mast
+    would hide it."""
     workers = default_workers() if workers is None else workers
     offsets = view_offsets(translation_search)
     init = (config.to_dict(), asdict(sc_config), offsets, verification_voxel)
     with open_source(path, topic=topic, poses=poses, progress=progress) as source:
         indices = select_keyframes(source, distance=keyframe_distance, every=every)
         scans = source_points(source, indices)
+        if blocked_azimuth is not None:
+            scans = (points[outside_wedge(points, blocked_azimuth)] for points in scans)
         bar = tqdm(total=len(indices), desc=f"describing {source.name}", unit="scan",
                    disable=not progress, leave=False)
         vbrl, sc, clouds, frames = [], [], [], []

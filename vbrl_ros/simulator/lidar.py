@@ -51,6 +51,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from vbrl_ros.datasets.blocked_wedge import checked_wedge, outside_wedge
+
 from .geometry import REFLECTIVITY, Material, PrimitiveKind
 from .scene import Hits, PairLists, Scene
 
@@ -105,19 +107,12 @@ class LidarConfig:
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"LidarConfig.{name} must be a non-negative number, got {value!r}")
         if self.blocked_azimuth_deg is not None:
-            wedge = tuple(float(v) for v in self.blocked_azimuth_deg)
-            if len(wedge) != 2 or not all(-180.0 <= v <= 180.0 for v in wedge) or _wedge_width(wedge) == 0:
-                raise ValueError("LidarConfig.blocked_azimuth_deg must be (start, end) in [-180, 180] degrees "
-                                 f"spanning less than a full turn, got {self.blocked_azimuth_deg!r}")
-            object.__setattr__(self, "blocked_azimuth_deg", wedge)
+            object.__setattr__(self, "blocked_azimuth_deg",
+                               checked_wedge(self.blocked_azimuth_deg, "LidarConfig.blocked_azimuth_deg"))
 
     def sees(self, xyz: np.ndarray) -> np.ndarray:
         """(N,) bool: the sensor-frame points ``xyz`` lie outside the blocked wedge."""
-        if self.blocked_azimuth_deg is None:
-            return np.ones(len(xyz), dtype=bool)
-        start = self.blocked_azimuth_deg[0]
-        azimuth = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
-        return (azimuth - start) % 360.0 > _wedge_width(self.blocked_azimuth_deg)
+        return outside_wedge(xyz, self.blocked_azimuth_deg)
 
     @property
     def n_rays(self) -> int:
@@ -135,11 +130,6 @@ class LidarConfig:
     def directions(self) -> np.ndarray:
         """(beams * columns, 3) unit ray directions in the sensor frame, row-major."""
         return _directions(self.beams, self.columns, self.vertical_fov_deg)  # type: ignore[arg-type]
-
-
-def _wedge_width(wedge: tuple[float, float]) -> float:
-    """Degrees swept counter-clockwise from ``wedge[0]`` to ``wedge[1]``, in [0, 360)."""
-    return (wedge[1] - wedge[0]) % 360.0
 
 
 @lru_cache(maxsize=8)
