@@ -10,6 +10,7 @@ other: a look-up in a grid, not a nearest-neighbour search over every point.
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import binary_dilation
 
 
 class PlanView:
@@ -22,18 +23,14 @@ class PlanView:
             self.centres = np.empty((0, 2))
             self._origin, self._near = np.zeros(2, dtype=np.int64), np.zeros((1, 1), dtype=bool)
             return
-        # two empty cells around the occupied ones: the dilation below marks the first, and reads
-        # its neighbours from inside the grid
-        self._origin = index.min(axis=0) - 2
-        grid = np.zeros(tuple(index.max(axis=0) - self._origin + 3), dtype=bool)
+        # one empty cell around the occupied ones, which the dilation marks; cells beyond it are
+        # two or more from any occupied one
+        self._origin = index.min(axis=0) - 1
+        grid = np.zeros(tuple(index.max(axis=0) - self._origin + 2), dtype=bool)
         grid[tuple((index - self._origin).T)] = True
         #: (M, 2) the centres of the occupied cells
         self.centres = (np.argwhere(grid) + self._origin + 0.5) * self.cell
-        near = grid.copy()
-        for di in (-1, 0, 1):
-            for dj in (-1, 0, 1):
-                near[1:-1, 1:-1] |= grid[1 + di:grid.shape[0] - 1 + di, 1 + dj:grid.shape[1] - 1 + dj]
-        self._near = near
+        self._near = binary_dilation(grid, structure=np.ones((3, 3), dtype=bool))
 
     def near(self, xy: np.ndarray) -> np.ndarray:
         """(N,) bool: each (x, y) (this cloud's frame) lies in an occupied cell or one beside it."""
