@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from vbrl_ros.datasets.blocked_wedge import outside_wedge
 from vbrl_ros.detection.prepared_cloud import PreparedCloud
 from vbrl_ros.detection.registration import (
     MAX_POINT_RANGE_M,
@@ -379,7 +380,7 @@ def courtyard_scans(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
     def seen(T_world_sensor: np.ndarray) -> np.ndarray:
         points = scan(scene, T_world_sensor, rng)
-        return downsample_for_storage(points[np.abs(np.degrees(np.arctan2(points[:, 1], points[:, 0]))) < 135])
+        return downsample_for_storage(points[outside_wedge(points, (135.0, -135.0))])
     return seen(T_world_query), seen(T_world_match), np.linalg.inv(T_world_query) @ T_world_match
 
 

@@ -216,12 +216,14 @@ class QueryVerifier:
             return self._register(match, guess, searched=False, laps=laps)
         overlays = query.heading_search(self.search_radius).alignments(match.structure, HEADING_HYPOTHESES)
         laps.lap("heading search")
+        overlay = overlays[0]
         if len(overlays) > 1:
             scores = [covisible_overlap(query, match, o.T_query_match) for o in overlays]
             best = int(np.argmax(scores))
-            overlays = [overlays[best if scores[best] >= scores[0] + HYPOTHESIS_MARGIN else 0]]
+            if scores[best] >= scores[0] + HYPOTHESIS_MARGIN:
+                overlay = overlays[best]
             laps.lap("heading hypotheses")
-        return self._register(match, overlays[0].T_query_match, searched=True, laps=laps)
+        return self._register(match, overlay.T_query_match, searched=True, laps=laps)
 
     def _register(self, match: PreparedCloud, guess: np.ndarray, *, searched: bool, laps: _Laps) -> Verification:
         """KISS-ICP from ``guess``, then the evidence; ``searched``: the guess came from the heading
