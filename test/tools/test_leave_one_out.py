@@ -54,6 +54,7 @@ def test_every_recording_is_scored_by_a_model_trained_without_it(folder, tmp_pat
     assert rows["one_way"]["vbrl"]["revisits"] == 0
     assert rows["one_way"]["vbrl"]["node"]["accepted"] == 0  # nothing to close, nothing published
     assert "one_way" in text and "closures" in text and "Scan Context" in text
+    assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"  # the table as a chart, beside it
 
 
 def test_a_folder_with_fewer_than_two_recordings_is_refused(tmp_path, capsys):

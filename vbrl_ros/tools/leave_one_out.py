@@ -3,9 +3,9 @@
 For each recording in FOLDER (any source ``vbrl train`` reads: KITTI-style folders, bags),
 train the built-in model's recipe (:func:`~vbrl_ros.training.builtin_model.fit_recognition_model`)
 on the simulated towns plus every *other* recording, and evaluate P1 on the one left out,
-Scan Context beside it in the same run. Prints one table; ``--json`` writes it. A recording
-without revisits counts the false positives among accepted closures at the model's own
-distance threshold.
+Scan Context beside it in the same run. Prints one table; ``--json`` writes it and a bar chart
+(PNG) draws it. A recording without revisits counts the false positives among accepted
+closures at the model's own distance threshold.
 """
 
 from __future__ import annotations
@@ -33,7 +33,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "model's recipe on the simulated towns plus every other recording, and evaluate P1 on "
             "the one left out, Scan Context beside it in the same run: retrieval, the verified output "
             "swept over fitness, and what the node publishes at its default settings (both methods' "
-            "candidates verified by the node's own code). Prints one table; --json writes it. On a "
+            "candidates verified by the node's own code). Prints one table; --json writes it, --plot "
+            "draws it. On a "
             "recording without revisits every published closure is a false one."
         ),
     )
@@ -42,6 +43,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out-dir", type=Path, default=Path("runs/loo"),
                         help="where the models trained without each recording go (runs/loo)")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the table as JSON")
+    parser.add_argument("--plot", type=Path, metavar="FILE",
+                        help="the table as a bar chart PNG (default: next to --json, else OUT_DIR/loo.png)")
     parser.add_argument("--simulated-towns", action=argparse.BooleanOptionalAction, default=True,
                         help="train on the built-in model's simulated towns too, as its recipe does (on)")
     parser.add_argument("--submap-keyframes", type=int, default=None, metavar="N",
@@ -72,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
     from vbrl_ros.detection.settings import DetectorSettings
     from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
     from vbrl_ros.evaluation.methods import describe_source
+    from vbrl_ros.evaluation.plots import plot_leave_one_out
     from vbrl_ros.training.builtin_model import (
         BUILTIN_TOWNS,
         fit_recognition_model,
@@ -107,6 +111,10 @@ def run(args: argparse.Namespace) -> int:
         text = json.dumps(json_safe(rows), indent=1, allow_nan=False)
         atomic_write(args.json, lambda handle: handle.write(text.encode()))
         print(f"table written to {args.json}")
+    plot = args.plot or (args.json.with_suffix(".png") if args.json is not None else args.out_dir / "loo.png")
+    plot.parent.mkdir(parents=True, exist_ok=True)
+    plot_leave_one_out(rows, plot, title=f"leave-one-recording-out, P1, R = {RADIUS_M:g} m, E = {EXCLUDE}")
+    print(f"bar chart written to {plot}")
     return 0
 
 
