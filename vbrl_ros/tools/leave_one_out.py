@@ -34,8 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "the one left out, Scan Context beside it in the same run: retrieval, the verified output "
             "swept over fitness, and what the node publishes at its default settings (both methods' "
             "candidates verified by the node's own code). Prints one table; --json writes it, --plot "
-            "draws it. On a "
-            "recording without revisits every published closure is a false one."
+            "draws it. On a recording without revisits every published closure is a false one."
         ),
     )
     parser.add_argument("folder", type=Path, metavar="FOLDER",
