@@ -225,6 +225,23 @@ def test_save_load_round_trip_and_ids_continue(tmp_path):
     assert not list(tmp_path.glob(".*tmp"))
 
 
+def test_the_path_driven_between_keyframes_survives_a_restart(tmp_path):
+    # odometry_gate: metres apart and metres driven between two keyframes of one session
+    def at(x, y):
+        T = np.eye(4)
+        T[:2, 3] = x, y
+        return T
+    db, descriptor = make_db(0)[0], SCORER.compact(np.zeros(D, np.float32))
+    for i, (session, xy) in enumerate([("s0", (0, 0)), ("s0", (3, 4)), ("s1", (0, 0)), ("s0", (3, 0))]):
+        db.add(descriptor, float(i), session, pose=at(*xy))
+    assert db.odometry_apart(3, 0) == (3.0, 9.0)
+    assert all(np.isnan(db.odometry_apart(2, 0)))  # two sessions: odometry does not relate them
+    loaded = KeyframeDatabase.load(db.save(tmp_path / "kf.npz"), SCORER, "model-A")
+    assert loaded.odometry_apart(3, 0) == (3.0, 9.0)
+    loaded.add(descriptor, 9.0, "s0", pose=at(3, 8))  # driving on after it
+    assert loaded.odometry_apart(4, 0) == (np.hypot(3, 8), 17.0)
+
+
 def test_ids_survive_clear_and_save(tmp_path):
     db, _ = make_db(5)
     db.clear()

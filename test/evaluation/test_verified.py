@@ -12,6 +12,7 @@ from vbrl_ros.evaluation.metrics import evaluate_online
 from vbrl_ros.evaluation.verified import (
     Candidates,
     KeyframeClouds,
+    OdometryTrack,
     VerifiedCandidates,
     best_verified,
     node_decision,
@@ -110,6 +111,26 @@ def test_verifying_every_candidate_finds_the_revisits_and_rejects_the_rest(drive
         truth = np.linalg.inv(poses[q]) @ poses[indices[q, 0]]
         assert np.linalg.norm(one.T_query_match[q, 0][:3, 3] - truth[:3, 3]) < 0.3
     assert np.isnan(one.fitness[indices < 0]).all() and (one.rejection[indices < 0] == "no candidate").all()
+
+
+def test_evaluation_rejects_what_the_sources_odometry_places_too_far_away_as_the_node_does(drive):
+    clouds, poses = drive
+    gaps = np.linalg.norm(poses[:, None, :2, 3] - poses[None, :, :2, 3], axis=2)
+    q = next(q for q in range(len(poses)) if (gaps[q, : max(q - 5, 0)] < 3.0).any())
+    revisit, far = int(np.argmin(gaps[q, : q - 5])), int(np.argmax(gaps[q, : q - 5]))
+    candidates = Candidates(np.full((len(poses), 2), -1), np.full((len(poses), 2), INF))
+    candidates.indices[q] = [revisit, far]
+    track = OdometryTrack.of(poses)
+    # odometry that drifts not at all: the far place is out of reach, the revisit within it
+    strict = DetectorSettings(odometry_drift=1e-9)
+    checked = verify_candidates(clouds, None, candidates, strict, odometry=track, workers=1, progress=False)
+    assert checked.rejection[q, 1] == "odometry" and np.isnan(checked.fitness[q, 1])  # never registered
+    assert checked.accepted_at(strict.min_fitness)[q, 0]
+    # across sessions, or with the gate off, the far place is registered (and rejected on its own)
+    for odometry, settings in ((None, strict), (track, DetectorSettings(odometry_drift=0.0))):
+        plain = verify_candidates(clouds, None, candidates, settings, odometry=odometry, workers=1, progress=False)
+        assert plain.rejection[q, 1] != "odometry" and np.isfinite(plain.fitness[q, 1])
+    assert OdometryTrack.of(None) is None
 
 
 def test_evaluation_verifies_the_submaps_the_node_would():

@@ -53,6 +53,7 @@ def test_verified_rows_beside_retrieval_for_both_methods(verified):
     assert at_5m["precision"] >= 0.95 and at_5m["recall"] >= 0.5, at_5m
     assert report["metrics"]["VBRL, verified"]["5"]["max_f1"] >= 0.7
     assert report["verified"]["settings"]["top_k"] == 3
+    assert report["verified"]["settings"]["odometry_drift"] == 0.1  # the node's, from the source's poses
     # a lower threshold publishes at least as much, and nothing it kept before is lost
     assert points["VBRL"]["0.1"]["5"]["accepted"] >= at_5m["accepted"]
     assert points["VBRL"]["0.1"]["5"]["recall"] >= at_5m["recall"]
@@ -83,6 +84,7 @@ def test_bad_verification_options_say_which(tmp_path, capsys):
     for option, value, named in (("--min-fitness", "1.5", "min_fitness"), ("--verify-top-k", "0", "top_k"),
                                  ("--max-closure-distance", "-1", "max_closure_distance"),
                                  ("--submap-keyframes", "11", "submap_keyframes"),
+                                 ("--odometry-drift", "2", "--odometry-drift: 'odometry_drift'"),
                                  ("--distance-threshold", "nan", "--distance-threshold")):
         assert vbrl("eval", source, "--verify", option, value) != 0
         assert named in capsys.readouterr().err

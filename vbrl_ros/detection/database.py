@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from vbrl_ros.detection.database_file import MAX_KEYFRAME_ID, SavedDatabase, read_database, write_database
+from vbrl_ros.detection.odometry_gate import path_lengths
 from vbrl_ros.detection.submaps import KeyframeView, merged_cloud, neighbour_steps
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.keyframe_store import grown
@@ -59,6 +60,8 @@ class Candidate:
     session: str
     yaw: float = 0.0
     offset: tuple[float, float] = (0.0, 0.0)  # the keyframe's position in the query's grid frame
+    # odometry places it too far from the query to be one place (detection.odometry_gate)
+    too_far_by_odometry: bool = False
 
 
 class KeyframeDatabase:
@@ -91,6 +94,8 @@ class KeyframeDatabase:
         self._frames = np.empty((c, 4, 4), dtype=np.float64)
         self._cloud_offsets = np.zeros(c + 1, dtype=np.int64)  # offsets[0] = 0 always
         self._cloud_points = np.empty((0, 3), dtype=np.float32)
+        self._paths = np.empty(c, dtype=np.float64)  # metres driven in the session (odometry_gate)
+        self._last_known: dict[int, tuple[np.ndarray, float]] = {}  # session -> last position, its path
 
     # -- size and accessors ---------------------------------------------------
 
@@ -169,6 +174,15 @@ class KeyframeDatabase:
         return KeyframeView(self.cloud(i), self._frames[i], self._poses[i], float(self._stamps[i]),
                             self._sessions[self._session_index[i]])
 
+    def odometry_apart(self, a: int, b: int) -> tuple[float, float]:
+        """(metres between two keyframes by their poses, metres driven between them); NaN for
+        keyframes of different sessions or without poses."""
+        a, b = self._check_index(a), self._check_index(b)
+        if self._session_index[a] != self._session_index[b]:
+            return math.nan, math.nan
+        apart = float(np.linalg.norm(self._poses[a, :3, 3] - self._poses[b, :3, 3]))
+        return apart, float(abs(self._paths[a] - self._paths[b]))
+
     def index_of(self, keyframe_id: int) -> int:
         """Row of a keyframe id; ids are increasing, so a binary search."""
         ids = self._keyframe_ids[: self._size]
@@ -239,6 +253,7 @@ class KeyframeDatabase:
         self._frames = grown(self._frames, n + 1)
         self._cloud_offsets = grown(self._cloud_offsets, n + 2)
         self._cloud_points = grown(self._cloud_points, self._n_points + len(points))
+        self._paths = grown(self._paths, n + 1)
 
         self._stamps[n] = stamp
         self._session_index[n] = self._session_id(str(session))
@@ -248,9 +263,19 @@ class KeyframeDatabase:
         self._cloud_points[self._n_points : self._n_points + len(points)] = points
         self._n_points += len(points)
         self._cloud_offsets[n + 1] = self._n_points
+        self._paths[n] = self._path_to(int(self._session_index[n]), pose_array[:3, 3])
         self._size = n + 1
         self._next_id += 1
         return self._next_id - 1
+
+    def _path_to(self, session: int, position: np.ndarray) -> float:
+        """Metres driven in ``session`` up to ``position`` (NaN: unknown), remembered for the next."""
+        if not np.all(np.isfinite(position)):
+            return math.nan
+        before = self._last_known.get(session)
+        path = 0.0 if before is None else before[1] + float(np.linalg.norm(position - before[0]))
+        self._last_known[session] = (position.copy(), path)
+        return path
 
     def clear(self) -> None:
         """Forget every keyframe and free the memory. Ids keep increasing (never reused)."""
@@ -373,4 +398,8 @@ class KeyframeDatabase:
         db._frames = c["frames"].astype(np.float64, copy=False)
         db._cloud_offsets = c["cloud_offsets"].astype(np.int64, copy=False)
         db._cloud_points = c["cloud_points"].astype(np.float32, copy=False)
+        db._paths = path_lengths(db._poses[:, :3, 3], db._session_index)
+        for i in range(db._size):  # where each session's odometry goes on from
+            if np.isfinite(db._paths[i]):
+                db._last_known[int(db._session_index[i])] = (db._poses[i, :3, 3].copy(), float(db._paths[i]))
         return db

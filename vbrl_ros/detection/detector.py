@@ -19,6 +19,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from vbrl_ros.detection.database import Candidate, KeyframeDatabase
+from vbrl_ros.detection.odometry_gate import too_far_by_odometry
 from vbrl_ros.detection.registration import (
     QueryVerifier,
     Verification,
@@ -172,6 +173,7 @@ class LoopClosureDetector:
         cloud = verification_cloud(points, frame.matrix, cfg.verification_voxel) if cfg.verify else None
         keyframe_id = self.database.add(views[0], stamp, cfg.session, pose=pose, cloud=cloud,
                                         frame=frame.matrix)
+        candidates = [self._gated(c, len(self.database) - 1) for c in candidates]
         t3 = time.perf_counter()
         retrieval = Retrieval(  # rows of older keyframes stay where they were after an add
             keyframe_id=keyframe_id, stamp=stamp, session=cfg.session,
@@ -184,6 +186,13 @@ class LoopClosureDetector:
         retrieval.timings_ms.update(describe=1e3 * (t1 - t0), query=1e3 * (t2 - t1), insert=1e3 * (t3 - t2),
                                     submaps=1e3 * (t4 - t3))
         return retrieval
+
+    def _gated(self, candidate: Candidate, query_row: int) -> Candidate:
+        """``candidate`` marked when odometry places it too far from the query (odometry_gate)."""
+        apart, path = self.database.odometry_apart(query_row, candidate.index)
+        if too_far_by_odometry(apart, path, self.settings.max_closure_distance, self.settings.odometry_drift):
+            return replace(candidate, too_far_by_odometry=True)
+        return candidate
 
     def widened(self, retrieval: Retrieval, positions: list[int]) -> Retrieval | None:
         """``retrieval`` with only the candidates at ``positions``, its query's and their clouds merged
@@ -226,6 +235,9 @@ def verify_candidates(retrieval: Retrieval, settings: DetectorSettings) -> Keyfr
     for k, candidate in enumerate(retrieval.candidates):
         if len(closures) >= settings.max_closures:
             break
+        if candidate.too_far_by_odometry:  # not one place, however well it would register
+            rejections["odometry"] = rejections.get("odometry", 0) + 1
+            continue
         closure = LoopClosure(
             query_id=retrieval.keyframe_id, match_id=candidate.keyframe_id,
             query_stamp=retrieval.stamp, match_stamp=candidate.stamp, query_session=retrieval.session,

@@ -37,6 +37,9 @@ class DetectorSettings:
     translation_search: float = -1.0  # metres between query viewpoints; 0: none; -1: the model's
     sequence_length: int = DEFAULT_LENGTH  # keyframes a candidate is scored over; 1: this one alone
     submap_keyframes: int = 2  # neighbours merged into each verified cloud by odometry; 0: single scans
+    # share of the path between two same-session keyframes odometry may drift; a candidate odometry
+    # places farther than that (plus max_closure_distance and 5 m) is rejected unverified; 0: off
+    odometry_drift: float = 0.1
 
     def __post_init__(self) -> None:
         rules = {
@@ -57,6 +60,8 @@ class DetectorSettings:
                                 "an integer in [1, 20]"),
             "submap_keyframes": (isinstance(self.submap_keyframes, int) and 0 <= self.submap_keyframes <= 10,
                                  "an integer in [0, 10]"),
+            "odometry_drift": (_at_least(self.odometry_drift, 0) and self.odometry_drift <= 1,
+                               "a share of the path in [0, 1] (0: off)"),
         }
         for name, (ok, rule) in rules.items():
             if not ok:

@@ -32,13 +32,14 @@ from vbrl_ros.detection.detector import (
     submap_gap_s,
     to_sensor_frames,
 )
+from vbrl_ros.detection.odometry_gate import path_lengths, too_far_by_odometry
 from vbrl_ros.detection.registration import QueryVerifier
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.detection.submaps import KeyframeView, merged_cloud, neighbour_steps
 from vbrl_ros.evaluation.metrics import RetrievalMetrics
 from vbrl_ros.features.parallel import bounded_map, default_workers
 
-__all__ = ["Candidates", "KeyframeClouds", "VerifiedCandidates", "verify_candidates", "best_verified", "node_decision",
+__all__ = ["Candidates", "KeyframeClouds", "OdometryTrack", "VerifiedCandidates", "verify_candidates", "best_verified", "node_decision",
            "OperatingPoint", "operating_point", "submap_clouds"]
 
 
@@ -97,6 +98,29 @@ class _Work:
     settings: DetectorSettings  # the rule without its fitness threshold: fitness is swept afterwards
     wider: tuple[KeyframeClouds, KeyframeClouds] | None
     retry_fitness: float  # a degenerate registration overlapping this much is retried wider
+    odometry: OdometryTrack | None  # P1: where the node's odometry would place each keyframe
+
+
+@dataclass(frozen=True)
+class OdometryTrack:
+    """One session's keyframes as the node's odometry knows them: the source's positions stand for
+    it, as for submaps (:mod:`~vbrl_ros.detection.odometry_gate`)."""
+
+    positions: np.ndarray  # (n, 3), NaN where unknown
+    paths: np.ndarray  # (n,) metres driven from the start
+
+    @classmethod
+    def of(cls, poses: np.ndarray | None) -> OdometryTrack | None:
+        """The track of a source's keyframe poses (n, 4, 4), in order; None without poses."""
+        if poses is None:
+            return None
+        positions = np.asarray(poses, dtype=np.float64)[:, :3, 3]
+        return cls(positions, path_lengths(positions, np.zeros(len(positions), np.int64)))
+
+    def too_far(self, query: int, match: int, settings: DetectorSettings) -> bool:
+        apart = float(np.linalg.norm(self.positions[query] - self.positions[match]))
+        return too_far_by_odometry(apart, float(self.paths[query] - self.paths[match]),
+                                   settings.max_closure_distance, settings.odometry_drift)
 
 
 _worker: _Work | None = None
@@ -106,11 +130,12 @@ _last_query: tuple[int, QueryVerifier] | None = None
 
 
 def _init_worker(queries: KeyframeClouds, database: KeyframeClouds | None, settings: DetectorSettings,
-                 wider: tuple[KeyframeClouds, KeyframeClouds | None] | None) -> None:
+                 wider: tuple[KeyframeClouds, KeyframeClouds | None] | None,
+                 odometry: OdometryTrack | None = None) -> None:
     global _worker, _last_query
     _worker = _Work(queries, database or queries, DetectorSettings(**{**settings.__dict__, "min_fitness": 0.0}),
                     None if wider is None else (wider[0], wider[1] or wider[0]),
-                    WIDER_RETRY_FITNESS * settings.min_fitness)
+                    WIDER_RETRY_FITNESS * settings.min_fitness, odometry)
     _last_query = None
 
 
@@ -118,6 +143,8 @@ def _verify(task: tuple[int, int]) -> tuple[float, str | None, np.ndarray, bool]
     global _last_query
     assert _worker is not None
     work, (query, match) = _worker, task
+    if work.odometry is not None and work.odometry.too_far(query, match, work.settings):
+        return math.nan, "odometry", np.full((4, 4), np.nan), False  # as the node: not registered
     if _last_query is None or _last_query[0] != query:
         _last_query = (query, query_verifier(work.queries.clouds[query], work.settings, max_threads=1))
     check = _last_query[1].verify(work.database.clouds[match])
@@ -136,11 +163,12 @@ def _verify(task: tuple[int, int]) -> tuple[float, str | None, np.ndarray, bool]
 
 def verify_candidates(queries: KeyframeClouds, database: KeyframeClouds | None, candidates: Candidates,
                       settings: DetectorSettings, *, wider: tuple[KeyframeClouds, KeyframeClouds | None] | None = None,
-                      workers: int | None = None, progress: bool = True,
+                      odometry: OdometryTrack | None = None, workers: int | None = None, progress: bool = True,
                       description: str = "verifying") -> VerifiedCandidates:
     """Register every candidate as the node does; ``database`` None: the queries' own (P1). With
     ``wider`` (the queries' and the database's clouds from submaps of twice the neighbours), a
-    degenerate registration is retried with them, as the node retries it."""
+    degenerate registration is retried with them, as the node retries it. With ``odometry`` (P1:
+    one session) a candidate it places too far away is rejected unregistered, as by the node."""
     n, k = candidates.indices.shape
     fitness = np.full((n, k), np.nan)
     rejection = np.full((n, k), "no candidate", dtype=object)
@@ -150,7 +178,7 @@ def verify_candidates(queries: KeyframeClouds, database: KeyframeClouds | None, 
     tasks = [(q, int(candidates.indices[q, r])) for q, r in slots]
     workers = default_workers() if workers is None else workers
     bar = tqdm(total=len(tasks), desc=description, unit="pair", disable=not progress, leave=False)
-    initargs = (queries, database, settings, wider)
+    initargs = (queries, database, settings, wider, odometry)
     try:
         if workers <= 1:
             _init_worker(*initargs)

@@ -131,6 +131,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     verify.add_argument("--submap-keyframes", type=int, default=DETECTOR_DEFAULTS.submap_keyframes, metavar="N",
                         help="the node's submap_keyframes: neighbours merged into each verified cloud by the "
                              "source's poses (0: single scans)")
+    verify.add_argument("--odometry-drift", type=float, default=DETECTOR_DEFAULTS.odometry_drift, metavar="S",
+                        help="the node's odometry_drift: P1 candidates the source's poses place farther than "
+                             "max_closure_distance + 5 m + S x the path between them are rejected unverified "
+                             "(0: off)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
 

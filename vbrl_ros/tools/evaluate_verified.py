@@ -25,6 +25,7 @@ from vbrl_ros.training.ablations import FULL_NAME
 from vbrl_ros.evaluation.verified import (
     Candidates,
     KeyframeClouds,
+    OdometryTrack,
     OperatingPoint,
     VerifiedCandidates,
     best_verified,
@@ -54,7 +55,8 @@ class VerifiedOutputs:
         return {
             "settings": {"top_k": self.settings.top_k, "min_fitness": list(self.min_fitness),
                          "max_closure_distance": self.settings.max_closure_distance,
-                         "verification_voxel": self.settings.verification_voxel},
+                         "verification_voxel": self.settings.verification_voxel,
+                         "odometry_drift": self.settings.odometry_drift},
             "distance_threshold": self.thresholds,
             "fitness_at_max_f1": {name: {f"{r:g}": 1.0 - m.threshold_at_max_f1 for r, m in by_r.items()}
                                   for name, by_r in metrics.items() if name.endswith(VERIFIED_SUFFIX)},
@@ -76,7 +78,8 @@ def settings(args: argparse.Namespace, min_fitness: float) -> DetectorSettings:
     """The node's acceptance rule from the options; a bad one is named with the detector's rule."""
     options = {"top_k": ("--verify-top-k", args.verify_top_k), "min_fitness": ("--min-fitness", min_fitness),
                "max_closure_distance": ("--max-closure-distance", args.max_closure_distance),
-               "submap_keyframes": ("--submap-keyframes", args.submap_keyframes)}
+               "submap_keyframes": ("--submap-keyframes", args.submap_keyframes),
+               "odometry_drift": ("--odometry-drift", args.odometry_drift)}
     for name, (option, value) in options.items():
         try:
             DetectorSettings(**{name: value})
@@ -103,8 +106,9 @@ def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, databas
             continue  # ablations: retrieval only
         k = min(rule.top_k, results.k)
         candidates = Candidates(results.indices[:, :k], results.distances[:, :k])
-        verified = verify_candidates(*clouds, candidates, rule, wider=wider, workers=args.workers,
-                                     progress=not args.quiet, description=f"verifying {name}")
+        verified = verify_candidates(*clouds, candidates, rule, wider=wider, odometry=odometry_track(queries, database),
+                                     workers=args.workers, progress=not args.quiet,
+                                     description=f"verifying {name}")
         outputs.checked[name] = (candidates, verified)
         indices, distances = best_verified(candidates, verified)
         metrics[name + VERIFIED_SUFFIX] = score(RetrievalResults(indices, distances, results.database_limit))
@@ -126,6 +130,12 @@ def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, databas
             outputs.points[name][min_fitness] = {r: operating_point(m, accepted) for r, m in point.items()}
         outputs.thresholds[name] = threshold
     return outputs
+
+
+def odometry_track(queries: SourceDescriptors, database: SourceDescriptors) -> OdometryTrack | None:
+    """P1's one session as the node's odometry sees it (the source's poses); None for P2, whose two
+    sessions odometry does not relate, and without poses."""
+    return OdometryTrack.of(queries.poses) if database is queries else None
 
 
 def verified_clouds(queries: SourceDescriptors, database: SourceDescriptors, rule: DetectorSettings, *,
@@ -152,7 +162,7 @@ def format_points(outputs: VerifiedOutputs, radii: list[float]) -> str:
     rule = outputs.settings
     fitness = ", ".join(f"{f:g}" for f in outputs.min_fitness)
     lines = [f"at the node's settings (top {rule.top_k}, min_fitness {fitness}, "
-             f"max_closure_distance {rule.max_closure_distance:g} m)"]
+             f"max_closure_distance {rule.max_closure_distance:g} m, odometry_drift {rule.odometry_drift:g})"]
     for r in radii:
         lines.append(f"radius {r:g} m")
         lines.append(f"  {'method':<24s} {'min_fitness':>11s} {'accepted':>8s} {'precision':>9s} {'recall':>7s} "

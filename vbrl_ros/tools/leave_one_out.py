@@ -135,7 +135,7 @@ def evaluate(source, model, rule, progress: bool) -> dict:
     from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod
     from vbrl_ros.evaluation.metrics import evaluate_online
     from vbrl_ros.evaluation.retrieval import online_retrieval
-    from vbrl_ros.tools.evaluate_verified import verified_clouds, wider_clouds
+    from vbrl_ros.tools.evaluate_verified import odometry_track, verified_clouds, wider_clouds
     from vbrl_ros.evaluation.verified import (
         Candidates,
         best_verified,
@@ -152,8 +152,8 @@ def evaluate(source, model, rule, progress: bool) -> dict:
         m = evaluate_online(source.positions, results.indices, results.distances, RADIUS_M, EXCLUDE)
         row = {"max_f1": m.max_f1, "recall_at_1": m.recall_at_1, "revisits": m.num_revisits}
         candidates = Candidates(results.indices[:, :rule.top_k], results.distances[:, :rule.top_k])
-        checked = verify_candidates(*clouds, candidates, rule, wider=wider, progress=progress,
-                                    description=f"verifying {method.name}")
+        checked = verify_candidates(*clouds, candidates, rule, wider=wider, odometry=odometry_track(source, source),
+                                    progress=progress, description=f"verifying {method.name}")
         swept = evaluate_online(source.positions, *best_verified(candidates, checked), RADIUS_M, EXCLUDE)
         decided, decision = node_decision(candidates, checked, math.inf, rule.min_fitness, rule.top_k)
         point = operating_point(evaluate_online(source.positions, decided, decision, RADIUS_M, EXCLUDE),

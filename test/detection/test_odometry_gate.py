@@ -1,0 +1,75 @@
+"""Same-session candidates odometry places too far away are rejected before registration."""
+
+import math
+
+import numpy as np
+
+from vbrl_ros.detection.database import KeyframeDatabase
+from vbrl_ros.detection.detector import LoopClosureDetector
+from vbrl_ros.detection.odometry_gate import SLACK_M, path_lengths, too_far_by_odometry
+from vbrl_ros.detection.settings import DetectorSettings, SettingsError
+from vbrl_ros.model.builtin import load_default_model
+
+
+def test_the_path_is_driven_per_session_and_bridges_an_unknown_pose():
+    positions = np.array([[0, 0, 0], [3, 4, 0], [np.nan] * 3, [3, 8, 0], [100, 0, 0], [100, 10, 0]], float)
+    sessions = np.array([0, 0, 0, 0, 1, 1])
+    paths = path_lengths(positions, sessions)
+    assert paths[:2].tolist() == [0.0, 5.0] and math.isnan(paths[2])
+    assert paths[3] == 9.0  # from the last known pose, in a straight line
+    assert paths[4:].tolist() == [0.0, 10.0]  # another session starts its own
+
+
+def test_the_gate_allows_drift_in_proportion_to_the_path():
+    allowed = 5.0 + SLACK_M + 0.1 * 200.0  # max_closure_distance, slack and a tenth of 200 m
+    assert not too_far_by_odometry(allowed - 0.1, 200.0, 5.0, 0.1)
+    assert too_far_by_odometry(allowed + 0.1, 200.0, 5.0, 0.1)
+    assert not too_far_by_odometry(1e4, 200.0, 5.0, 0.0)  # 0: off
+    assert not too_far_by_odometry(math.nan, 200.0, 5.0, 0.1)  # no pose: no opinion
+    assert not too_far_by_odometry(1e4, math.nan, 5.0, 0.1)
+
+
+def test_a_bad_drift_setting_is_named():
+    for bad in (-0.1, 1.5, math.nan):
+        try:
+            DetectorSettings(odometry_drift=bad)
+        except SettingsError as error:
+            assert "'odometry_drift' must be a share of the path in [0, 1] (0: off)" in str(error)
+        else:
+            raise AssertionError(bad)
+
+
+def place(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(-30, 30, (20_000, 3)).astype(np.float32)
+    points[:, 2] = np.abs(points[:, 2]) % 5 - 2
+    return points
+
+
+def pose(x: float, y: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:2, 3] = x, y
+    return T
+
+
+def drive(odometry_drift: float, back_at: tuple[float, float]):
+    """One place, three others 50 m apart along a loop, then the first place again where odometry
+    says ``back_at``; the result of that last keyframe."""
+    model = load_default_model()
+    settings = DetectorSettings(exclude_recent_s=0.0, top_k=1, odometry_drift=odometry_drift, submap_keyframes=0)
+    detector = LoopClosureDetector(model, KeyframeDatabase(model.scorer(), model.identity()), settings)
+    for k, (seed, at) in enumerate([(0, (0.0, 0.0)), (1, (50.0, 0.0)), (2, (100.0, 0.0)), (3, (50.0, 5.0))]):
+        detector.process_keyframe(place(seed), float(k), pose(*at))
+    return detector.process_keyframe(place(0), 4.0, pose(*back_at))
+
+
+def test_a_lookalike_odometry_places_hundreds_of_metres_away_is_not_registered():
+    # 193 m driven: 5 + 5 + 19 m allowed; the same cloud where odometry says 300 m away
+    far = drive(0.1, (300.0, 0.0))
+    assert far.closures == [] and far.rejections == {"odometry": 1}
+    assert [c.match_id for c in drive(0.0, (300.0, 0.0)).closures] == [0]  # the gate off: registered
+
+
+def test_a_true_revisit_after_odometry_drifted_is_still_closed():
+    back = drive(0.1, (8.0, 0.0))  # odometry 8 m off after 193 m: a drift of 4 %
+    assert [c.match_id for c in back.closures] == [0] and back.rejections == {}

@@ -1,0 +1,44 @@
+"""Same-session candidates that odometry places far away are not verified.
+
+A place that looks like another — a repeated block of buildings, a second identical
+corridor — can register well enough to pass every geometric test. Within one session the
+node knows where it has been: odometry drifts, but by a share of the path travelled, not by
+hundreds of metres. A candidate whose keyframe odometry places farther from the query than
+``max_closure_distance`` plus :data:`SLACK_M` plus ``odometry_drift`` times the path driven
+between the two cannot be the same place and is rejected before it is registered. Across
+sessions odometry says nothing, and neither it does where a pose is unknown.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Metres allowed beyond ``max_closure_distance`` however short the path between the two
+#: keyframes: odometry that has just started may already be off by a little.
+SLACK_M = 5.0
+
+
+def path_lengths(positions: np.ndarray, sessions: np.ndarray) -> np.ndarray:
+    """(n,) metres driven from the start of each keyframe's session to it, keyframes in order;
+    NaN where a position is unknown (a keyframe without one is bridged in a straight line)."""
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    sessions = np.asarray(sessions).reshape(-1)
+    out = np.full(len(positions), np.nan)
+    last: dict = {}  # session -> (its last known position, path there)
+    for i, (p, s) in enumerate(zip(positions, sessions.tolist())):
+        if not np.all(np.isfinite(p)):
+            continue
+        before = last.get(s)
+        out[i] = 0.0 if before is None else before[1] + float(np.linalg.norm(p - before[0]))
+        last[s] = (p, out[i])
+    return out
+
+
+def too_far_by_odometry(apart_m: float, path_m: float, max_closure_distance: float,
+                        odometry_drift: float) -> bool:
+    """Whether two keyframes ``apart_m`` metres apart by odometry, ``path_m`` metres of driving
+    between them, are too far apart to be one place; never without both (NaN) or with
+    ``odometry_drift`` 0 (the gate off)."""
+    if odometry_drift <= 0 or not (np.isfinite(apart_m) and np.isfinite(path_m)):
+        return False
+    return apart_m > max_closure_distance + SLACK_M + odometry_drift * abs(path_m)
