@@ -39,8 +39,8 @@ from vbrl_ros.detection.submaps import KeyframeView, merged_cloud, neighbour_ste
 from vbrl_ros.evaluation.metrics import RetrievalMetrics
 from vbrl_ros.features.parallel import bounded_map, default_workers
 
-__all__ = ["Candidates", "KeyframeClouds", "OdometryTrack", "VerifiedCandidates", "verify_candidates", "best_verified", "node_decision",
-           "OperatingPoint", "operating_point", "submap_clouds"]
+__all__ = ["Candidates", "KeyframeClouds", "OdometryTrack", "VerifiedCandidates", "verify_candidates", "best_verified",
+           "node_decision", "OperatingPoint", "operating_point", "submap_clouds"]
 
 
 @dataclass(frozen=True)
