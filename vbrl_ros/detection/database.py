@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from vbrl_ros.detection.database_file import MAX_KEYFRAME_ID, SavedDatabase, read_database, write_database
-from vbrl_ros.detection.odometry_gate import path_lengths
+from vbrl_ros.detection.odometry_gate import DrivenPath, path_lengths
 from vbrl_ros.detection.submaps import KeyframeView, merged_cloud, neighbour_steps
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.keyframe_store import grown
@@ -95,7 +95,7 @@ class KeyframeDatabase:
         self._cloud_offsets = np.zeros(c + 1, dtype=np.int64)  # offsets[0] = 0 always
         self._cloud_points = np.empty((0, 3), dtype=np.float32)
         self._paths = np.empty(c, dtype=np.float64)  # metres driven in the session (odometry_gate)
-        self._last_known: dict[int, tuple[np.ndarray, float]] = {}  # session -> last position, its path
+        self._driven = DrivenPath()
 
     # -- size and accessors ---------------------------------------------------
 
@@ -263,19 +263,10 @@ class KeyframeDatabase:
         self._cloud_points[self._n_points : self._n_points + len(points)] = points
         self._n_points += len(points)
         self._cloud_offsets[n + 1] = self._n_points
-        self._paths[n] = self._path_to(int(self._session_index[n]), pose_array[:3, 3])
+        self._paths[n] = self._driven.step(int(self._session_index[n]), pose_array[:3, 3])
         self._size = n + 1
         self._next_id += 1
         return self._next_id - 1
-
-    def _path_to(self, session: int, position: np.ndarray) -> float:
-        """Metres driven in ``session`` up to ``position`` (NaN: unknown), remembered for the next."""
-        if not np.all(np.isfinite(position)):
-            return math.nan
-        before = self._last_known.get(session)
-        path = 0.0 if before is None else before[1] + float(np.linalg.norm(position - before[0]))
-        self._last_known[session] = (position.copy(), path)
-        return path
 
     def clear(self) -> None:
         """Forget every keyframe and free the memory. Ids keep increasing (never reused)."""
@@ -398,8 +389,5 @@ class KeyframeDatabase:
         db._frames = c["frames"].astype(np.float64, copy=False)
         db._cloud_offsets = c["cloud_offsets"].astype(np.int64, copy=False)
         db._cloud_points = c["cloud_points"].astype(np.float32, copy=False)
-        db._paths = path_lengths(db._poses[:, :3, 3], db._session_index)
-        for i in range(db._size):  # where each session's odometry goes on from
-            if np.isfinite(db._paths[i]):
-                db._last_known[int(db._session_index[i])] = (db._poses[i, :3, 3].copy(), float(db._paths[i]))
+        db._paths = path_lengths(db._poses[:, :3, 3], db._session_index, db._driven)  # and it goes on from there
         return db

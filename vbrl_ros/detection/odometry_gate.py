@@ -18,20 +18,31 @@ import numpy as np
 SLACK_M = 5.0
 
 
-def path_lengths(positions: np.ndarray, sessions: np.ndarray) -> np.ndarray:
-    """(n,) metres driven from the start of each keyframe's session to it, keyframes in order;
-    NaN where a position is unknown (a keyframe without one is bridged in a straight line)."""
+class DrivenPath:
+    """Metres driven since each session began, keyframe by keyframe in order; a keyframe without a
+    position has none, and the next one is bridged from the last known in a straight line."""
+
+    def __init__(self) -> None:
+        self._last: dict = {}  # session -> (its last known position, metres driven there)
+
+    def step(self, session, position: np.ndarray) -> float:
+        """Metres driven in ``session`` up to ``position`` (NaN where it is unknown)."""
+        position = np.asarray(position, dtype=np.float64)
+        if not np.all(np.isfinite(position)):
+            return float("nan")
+        before = self._last.get(session)
+        path = 0.0 if before is None else before[1] + float(np.linalg.norm(position - before[0]))
+        self._last[session] = (position.copy(), path)
+        return path
+
+
+def path_lengths(positions: np.ndarray, sessions: np.ndarray, driven: DrivenPath | None = None) -> np.ndarray:
+    """(n,) :meth:`DrivenPath.step` of each keyframe in order (``driven``: the tracker to go on
+    with afterwards; a new one by default)."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    sessions = np.asarray(sessions).reshape(-1)
-    out = np.full(len(positions), np.nan)
-    last: dict = {}  # session -> (its last known position, path there)
-    for i, (p, s) in enumerate(zip(positions, sessions.tolist())):
-        if not np.all(np.isfinite(p)):
-            continue
-        before = last.get(s)
-        out[i] = 0.0 if before is None else before[1] + float(np.linalg.norm(p - before[0]))
-        last[s] = (p, out[i])
-    return out
+    driven = DrivenPath() if driven is None else driven
+    return np.array([driven.step(s, p) for p, s in zip(positions, np.asarray(sessions).reshape(-1).tolist())],
+                    dtype=np.float64)
 
 
 def too_far_by_odometry(apart_m: float, path_m: float, max_closure_distance: float,
