@@ -71,11 +71,11 @@ DESCRIPTIONS: dict[str, str] = {
     "submap_keyframes": "neighbouring keyframes merged into each verified cloud by odometry poses (the "
                         "query's past, a stored keyframe's both sides): sparse scans then register as small "
                         "local maps. 0: single scans; without odometry, single scans too.",
-    "odometry_drift": "share of the path driven between two keyframes of this session that odometry may "
-                      "have drifted: a candidate odometry places farther from the keyframe than "
+    "odometry_drift": "share of the path driven between two keyframes of one session (session_id) that "
+                      "odometry may have drifted: a candidate odometry places farther from the keyframe than "
                       "max_closure_distance + 5 m + this share of that path is rejected without being "
                       "registered (a repeated building, a second identical corridor). 0: off; without "
-                      "odometry, and across sessions, it never applies.",
+                      "odometry, and between keyframes of different sessions, it never applies.",
     "save_every": "keyframes between database saves. 0: only at shutdown or on ~/save_database.",
     "weight_prune": "descriptor rows weighing less than this times the largest row weight are neither "
                     "stored nor scored (learned sparsity; 0.0001 drops about 13 % of the built-in "
