@@ -33,13 +33,24 @@ def azimuth_bins(xy: np.ndarray, count: int = BINS) -> np.ndarray:
     return (np.floor((azimuth + np.pi) * (count / (2.0 * np.pi))).astype(np.int64)) % count
 
 
+def empty_bins(xy: np.ndarray, bins: np.ndarray | None = None) -> np.ndarray:
+    """(BINS,) bool: the azimuth bins with no point beyond ``MIN_RANGE_M``. ``bins``:
+    :func:`azimuth_bins` of ``xy``, when the caller has them."""
+    bins = azimuth_bins(xy) if bins is None else bins
+    far = np.einsum("ij,ij->i", xy, xy) >= MIN_RANGE_M ** 2
+    return np.bincount(bins[far], minlength=BINS) == 0
+
+
+def sees_around(xy: np.ndarray, bins: np.ndarray | None = None) -> bool:
+    """Whether the scan saw at least ``MIN_SEEN_FRACTION`` of the circle (not forward-looking)."""
+    return bool(1.0 - empty_bins(xy, bins).mean() >= MIN_SEEN_FRACTION)
+
+
 def blind_bins(xy: np.ndarray, bins: np.ndarray | None = None) -> np.ndarray:
     """(BINS,) bool: the azimuth bins inside runs of at least ``MIN_BLIND_DEG`` with no point
     beyond ``MIN_RANGE_M``; all False when the scan saw less than ``MIN_SEEN_FRACTION``.
     ``bins``: :func:`azimuth_bins` of ``xy``, when the caller has them."""
-    bins = azimuth_bins(xy) if bins is None else bins
-    far = np.einsum("ij,ij->i", xy, xy) >= MIN_RANGE_M ** 2
-    empty = np.bincount(bins[far], minlength=BINS) == 0
+    empty = empty_bins(xy, bins)
     if empty.all() or 1.0 - empty.mean() < MIN_SEEN_FRACTION:
         return np.zeros(BINS, dtype=bool)
     blind = np.zeros(BINS, dtype=bool)

@@ -1,0 +1,152 @@
+"""A keyframe's trail: earlier keyframes merged in where odometry puts them, and only when that helps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vbrl_ros.features.blind_wedges import azimuth_bins, blind_bins
+from vbrl_ros.features.trail import MAX_TRAIL_KEYFRAMES, TRAIL_POINTS, Trail, trail_clouds, with_trail
+
+
+def pose_at(x: float, y: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:2, 3] = x, y
+    return T
+
+
+def walls(rng: np.random.Generator, count: int = 4000) -> np.ndarray:
+    """(n, 3) world points: a ring of wall 12 m round the origin, 0–3 m high."""
+    angle = rng.uniform(-np.pi, np.pi, count)
+    return np.column_stack([12.0 * np.cos(angle), 12.0 * np.sin(angle), rng.uniform(0.0, 3.0, count)])
+
+
+def seen_from(world: np.ndarray, pose: np.ndarray, without: tuple[float, float] | None = None) -> np.ndarray:
+    """``world`` in the sensor frame of ``pose``; ``without``: an azimuth wedge (degrees) it misses."""
+    inv = np.linalg.inv(pose)
+    points = world @ inv[:3, :3].T + inv[:3, 3]
+    if without is not None:
+        azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+        points = points[~((azimuth >= without[0]) & (azimuth <= without[1]))]
+    return points
+
+
+def in_world(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    return points @ pose[:3, :3].T + pose[:3, 3]
+
+
+def test_an_earlier_keyframe_lands_where_odometry_puts_it():
+    rng = np.random.default_rng(0)
+    world = walls(rng)
+    post = np.array([[3.0, -8.0, z] for z in np.arange(0.0, 2.0, 0.25)])  # only the first keyframe sees it
+    first, second = pose_at(0.0), pose_at(1.5, 0.2, yaw_deg=30.0)
+    trail = Trail(3.0)
+    trail.cloud(seen_from(np.vstack([world, post]), first), first)
+    merged = trail.cloud(seen_from(world, second), second)
+    placed = in_world(merged, second)
+    gap = np.linalg.norm(placed[:, None, :2] - post[None, :, :2], axis=2).min(axis=0)
+    assert gap.max() < 1e-4  # every post point, where it stands
+    assert len(trail) == 2
+
+
+def test_without_a_reach_pose_or_session_a_keyframe_is_described_alone():
+    rng = np.random.default_rng(1)
+    world = walls(rng)
+    scans = [seen_from(world, pose_at(x)) for x in (0.0, 1.0)]
+    alone = Trail(0.0)
+    assert all(alone.cloud(s, pose_at(0.0)) is s for s in scans)
+    unposed = Trail(3.0)
+    unposed.cloud(scans[0], pose_at(0.0))
+    assert unposed.cloud(scans[1], None) is scans[1] and len(unposed) == 0  # and the trail starts anew
+    sessions = Trail(3.0)
+    sessions.cloud(scans[0], pose_at(0.0), session="monday")
+    assert sessions.cloud(scans[1], pose_at(1.0), session="tuesday") is scans[1]
+    nan_pose = np.full((4, 4), np.nan)
+    assert Trail(3.0).cloud(scans[0], nan_pose) is scans[0]
+
+
+def test_keyframes_beyond_the_reach_are_forgotten_along_the_path_and_across_a_jump():
+    rng = np.random.default_rng(2)
+    world = walls(rng)
+    trail = Trail(3.0)
+    for x in (0.0, 1.0, 2.0, 3.0, 4.0):
+        trail.cloud(seen_from(world, pose_at(x)), pose_at(x))
+    assert len(trail) == 4  # 0 m is 4 m back
+    # back and forth within a metre: little apart in a straight line, but far along the path
+    wiggle = Trail(3.0)
+    for x in (0.0, 1.0, 0.0, 1.0, 0.0):
+        wiggle.cloud(seen_from(world, pose_at(x)), pose_at(x))
+    assert len(wiggle) == 4
+    # odometry reset: 50 m away without travelling between
+    trail.cloud(seen_from(world, pose_at(50.0)), pose_at(50.0))
+    assert len(trail) == 1
+
+
+def test_no_more_than_the_cap_is_merged_however_short_the_spacing():
+    rng = np.random.default_rng(3)
+    world = walls(rng, 500)
+    trail = Trail(3.0)
+    for k in range(MAX_TRAIL_KEYFRAMES + 10):
+        trail.cloud(seen_from(world, pose_at(0.01 * k)), pose_at(0.01 * k))
+    assert len(trail) == MAX_TRAIL_KEYFRAMES
+
+
+def test_a_forward_looking_scan_is_described_alone():
+    rng = np.random.default_rng(4)
+    world = walls(rng)
+    cone = (-35.0, 35.0)
+    trail = Trail(3.0)
+    trail.cloud(seen_from(world, pose_at(0.0)), pose_at(0.0))
+    ahead = seen_from(world, pose_at(1.0))
+    azimuth = np.degrees(np.arctan2(ahead[:, 1], ahead[:, 0]))
+    ahead = ahead[(azimuth >= cone[0]) & (azimuth <= cone[1])]
+    assert trail.cloud(ahead, pose_at(1.0)) is ahead
+
+
+def test_the_keyframes_blind_wedge_and_its_mirror_stay_empty_after_the_merge():
+    rng = np.random.default_rng(5)
+    world = walls(rng)
+    trail = Trail(3.0)
+    trail.cloud(seen_from(world, pose_at(0.0)), pose_at(0.0))  # saw all round
+    blind = seen_from(world, pose_at(1.0), without=(135.0, 180.0))
+    merged = trail.cloud(blind, pose_at(1.0))
+    hidden = blind_bins(blind[:, :2])
+    assert hidden.any()
+    occupied = np.zeros_like(hidden)
+    occupied[azimuth_bins(merged[:, :2])] = True
+    assert not (occupied & hidden).any()
+    assert not (occupied & np.roll(hidden, len(hidden) // 2)).any()
+    assert len(merged) > 0 and occupied.sum() == (~(hidden | np.roll(hidden, len(hidden) // 2))).sum()
+
+
+def test_with_trail_pairs_each_scan_with_the_cloud_it_is_described_by():
+    rng = np.random.default_rng(6)
+    world = walls(rng)
+    poses = np.stack([pose_at(x) for x in (0.0, 1.0, 2.0)])
+    scans = [seen_from(world, p) for p in poses]
+    pairs = list(with_trail(scans, poses, 3.0))
+    assert [p[0] is s for p, s in zip(pairs, scans)] == [True] * 3
+    assert pairs[0][1] is scans[0] and all(len(c) != len(s) for (s, c) in pairs[1:])
+    assert all(c is s for c, s in zip(trail_clouds(scans, None, 3.0), scans))  # no poses, no trail
+
+
+@pytest.mark.parametrize("reach", [-1.0, float("nan"), float("inf")])
+def test_a_bad_reach_is_refused(reach):
+    with pytest.raises(ValueError, match="trail reach"):
+        Trail(reach)
+
+
+def test_a_dense_keyframe_is_described_alone_and_a_sparse_one_takes_what_it_lacks():
+    rng = np.random.default_rng(7)
+    dense_world = walls(rng, TRAIL_POINTS)
+    trail = Trail(3.0)
+    trail.cloud(seen_from(dense_world, pose_at(0.0)), pose_at(0.0))
+    dense = seen_from(dense_world, pose_at(1.0))
+    assert trail.cloud(dense, pose_at(1.0)) is dense
+    sparse_trail = Trail(3.0)
+    for x in (0.0, 0.5, 1.0, 1.5):  # 3 x 40k points before, nearest first until 100k
+        sparse_trail.cloud(seen_from(walls(rng, 40_000), pose_at(x)), pose_at(x))
+    sparse = seen_from(walls(rng, 1000), pose_at(2.0))
+    assert len(sparse_trail.cloud(sparse, pose_at(2.0))) == 1000 + 3 * 40_000
