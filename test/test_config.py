@@ -36,6 +36,10 @@ def test_bad_grid_values_name_the_field(kwargs, name):
         ({"min_points": 0}, "features.min_points"),
         ({"mirror_blind_wedges": 1}, "features.mirror_blind_wedges"),
         ({"mirror_blind_wedges": True}, "features.mirror_blind_wedges"),  # the paper's modalities
+        ({"trail_m": -1.0}, "features.trail_m"),
+        ({"trail_m": float("nan")}, "features.trail_m"),
+        ({"trail_m": 100.0}, "features.trail_m"),
+        ({"trail_m": True}, "features.trail_m"),
     ],
 )
 def test_bad_feature_values_name_the_field(kwargs, name):
@@ -59,6 +63,13 @@ def test_mirrored_wedges_are_saved_only_when_on_so_older_models_keep_their_ident
     assert "mirror_blind_wedges" not in plain.to_dict()
     assert mirrored.to_dict()["mirror_blind_wedges"] is True
     assert FeatureConfig(**mirrored.to_dict()) == mirrored
+
+
+def test_a_trail_is_saved_only_when_set_so_older_models_keep_their_identity():
+    assert "trail_m" not in FeatureConfig().to_dict()
+    trailed = FeatureConfig(trail_m=3.0)
+    assert trailed.to_dict()["trail_m"] == 3.0
+    assert FeatureConfig(**trailed.to_dict()) == trailed
 
 
 def test_unknown_keys_are_refused():

@@ -28,6 +28,8 @@ PAPER_MODALITIES: tuple[str, ...] = ("covariance", "hog_xy", "hog_xz", "hog_yz",
 HEIGHT_MAP_MODALITIES: tuple[str, ...] = ("height", "spectrum")
 #: Every modality a descriptor may hold.
 MODALITY_NAMES: tuple[str, ...] = (*PAPER_MODALITIES, *HEIGHT_MAP_MODALITIES)
+#: The longest trail (features.trail_m) a keyframe is described with: odometry over more drifts.
+MAX_TRAIL_M = 20.0
 
 #: Settings only one kind of grid reads; the other kind must leave them at their
 #: defaults, so that one grid has one dict (and one model identity hash) — see to_dict.
@@ -179,6 +181,8 @@ class FeatureConfig:
     ``mirror_blind_wedges`` also hides the mirror image of every wedge the sensor did not
     see (:mod:`vbrl_ros.features.blind_wedges`), so reversed revisits of a partly blind
     sensor compare the same directions; height-map modalities only.
+    ``trail_m`` describes a keyframe with the keyframes of the last ``trail_m`` metres of
+    odometry merged in, when its pose is known (:mod:`vbrl_ros.features.trail`; 0 = alone).
     ``drop_weather_clutter`` takes lone points in the air near the sensor (returns from rain,
     snow or dust) out of the height map (:mod:`vbrl_ros.features.weather_clutter`); it
     changes the height-map modalities only.
@@ -199,6 +203,7 @@ class FeatureConfig:
     normalise: bool = False
     mirror_blind_wedges: bool = False
     drop_weather_clutter: bool = False
+    trail_m: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "modalities", tuple(self.modalities))
@@ -253,6 +258,12 @@ class FeatureConfig:
             "features.min_points",
             f"must be an integer >= 1, got {self.min_points!r}",
         )
+        _require(
+            isinstance(self.trail_m, (int, float)) and not isinstance(self.trail_m, bool)
+            and math.isfinite(self.trail_m) and 0.0 <= self.trail_m <= MAX_TRAIL_M,
+            "features.trail_m",
+            f"must be a number of metres in [0, {MAX_TRAIL_M:g}], got {self.trail_m!r}",
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """Every setting; the ones added after the paper's only when not at their defaults,
@@ -267,6 +278,8 @@ class FeatureConfig:
             del out["mirror_blind_wedges"]
         if not self.drop_weather_clutter:
             del out["drop_weather_clutter"]
+        if self.trail_m == 0.0:
+            del out["trail_m"]
         return out
 
     @property
