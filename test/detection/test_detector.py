@@ -118,3 +118,39 @@ def test_a_wider_retry_adds_what_it_accepted_after_the_closures_already_found():
     assert merged.rejections == {"degenerate": 2, "low fitness": 1} and merged.degenerate == []
     assert merged.timings_ms == {"verify": 30.0, "wider_retry": 20.0}
     assert not wants_wider_retry(merged, DetectorSettings(max_closures=2))
+
+
+# -- a keyframe described with its trail -----------------------------------------------------------
+
+def test_the_detector_describes_keyframes_with_their_trail_as_the_evaluation_does(tmp_path):
+    """With odometry the node merges the last metres of keyframes into each before describing it,
+    exactly as ``vbrl eval`` (and training) do with a recording's poses; without poses, alone."""
+    import pytest
+
+    from vbrl_ros.datasets.kitti_style import write_kitti_style
+    from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
+    from vbrl_ros.evaluation.methods import describe_source
+
+    sim = pytest.importorskip("vbrl_ros.simulator")
+    town = sim.generate_town(sim.TownConfig(blocks_x=2, blocks_y=2), seed=3)
+    run = sim.simulate_run(town, sim.make_route(town, sim.RouteConfig(loops=1, spacing_m=1.0)),
+                           sim.LidarConfig(beams=16, columns=512), "summer_clear", seed=1)
+    count = 6
+    folder = write_kitti_style(tmp_path / "run", [run.scan(k).points for k in range(count)],
+                               run.poses[:count], run.stamps[:count])
+    builtin = load_default_model()
+    model = replace(builtin, config=replace(builtin.config, features=replace(builtin.config.features,
+                                                                              trail_m=3.0)))
+    source = describe_source(folder, model.config, ScanContextConfig(), workers=1, progress=False)
+    with_odometry, without = detector(model), detector(model)
+    poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)  # as written, to the digit
+    for k in range(count):
+        points = np.fromfile(folder / "velodyne" / f"{k:06d}.bin", np.float32).reshape(-1, 4)
+        with_odometry.process_keyframe(points, float(run.stamps[k]), pose=np.vstack([poses[k], [0, 0, 0, 1]]))
+        without.process_keyframe(points, float(run.stamps[k]))
+    stored = np.stack([with_odometry.database.descriptor(k) for k in range(count)])
+    alone = np.stack([without.database.descriptor(k) for k in range(count)])
+    expected = model.scorer().compact(model.standardize(source.vbrl))
+    np.testing.assert_allclose(stored, expected, atol=1e-5)
+    np.testing.assert_array_equal(stored[0], alone[0])  # the first keyframe has no trail yet
+    assert all(np.abs(stored[k] - alone[k]).max() > 1e-3 for k in range(1, count))

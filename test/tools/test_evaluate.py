@@ -183,6 +183,21 @@ def test_a_bad_sequence_length_is_named(trained, tmp_path, monkeypatch, capsys, 
     assert capsys.readouterr().err.strip() == f"vbrl eval: error: {flag} must be an integer in [1, 20]"
 
 
+def test_a_trail_changes_what_vbrl_describes_and_is_reported(trained, tmp_path, monkeypatch, capsys):
+    (summer, _), model = trained  # keyframes 10 m apart: a 12 m trail merges the one before
+    dumps = {}
+    for trail in (None, "12"):
+        out, dumps[trail] = tmp_path / f"t{trail}.json", tmp_path / f"t{trail}.matches.json"
+        assert vbrl(monkeypatch, "eval", summer, "--model", model, "--json", out, "--dump-matches", dumps[trail],
+                    "--exclude", "20", "--no-ablations", "--no-scan-context", "--quiet", "--workers", "1",
+                    *(["--trail", trail] if trail else [])) == 0
+        assert _read(out)["trail_m"] == (0.0 if trail is None else 12.0)  # the paper model has none
+    alone, trailed = ([row["distance"] for row in _read(dumps[t])] for t in (None, "12"))
+    assert alone != pytest.approx(trailed)
+    assert vbrl(monkeypatch, "eval", summer, "--model", model, "--trail", "-1", "--quiet") == 2
+    assert capsys.readouterr().err.strip() == "vbrl eval: error: --trail must be a number of metres in [0, 20]"
+
+
 @pytest.mark.parametrize("missing", ["query", "--against", "--model"])
 def test_a_missing_path_fails_before_any_source_is_described(missing, tmp_path, monkeypatch, capsys):
     import vbrl_ros.evaluation.methods as methods

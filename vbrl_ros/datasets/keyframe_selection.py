@@ -67,3 +67,8 @@ def source_points(source: ScanSource, indices: Sequence[int]) -> Iterator[np.nda
         return
     for i in sorted(wanted):
         yield source[i].points
+
+
+def keyframe_poses(source: ScanSource, indices: Sequence[int]) -> np.ndarray | None:
+    """(n, 4, 4) T_world_lidar of the selected scans, in order; None when the source has no poses."""
+    return None if source.poses is None else source.poses[np.sort(np.asarray(indices, dtype=np.int64))]

@@ -26,6 +26,7 @@ from vbrl_ros.detection.registration import (
     downsample_for_storage,
 )
 from vbrl_ros.detection.settings import DetectorSettings
+from vbrl_ros.features.trail import Trail
 from vbrl_ros.index.sequence_matching import SequenceHistory
 from vbrl_ros.index.translation_search import view_offsets
 from vbrl_ros.model.model_file import VBRLModel
@@ -127,6 +128,7 @@ class LoopClosureDetector:
         step = model.translation_search() if settings.translation_search < 0 else settings.translation_search
         self.view_offsets = view_offsets(step)
         self.featurizer = model.featurizer()
+        self.trail = Trail(model.config.features.trail_m)  # the keyframes a keyframe is described with
         self.scorer = database.scorer
         self.sequence = SequenceHistory(settings.sequence_length)
 
@@ -159,9 +161,10 @@ class LoopClosureDetector:
         """Describe the keyframe, find its candidates, store it (arguments as :meth:`process_keyframe`)."""
         cfg = self.settings
         t0 = time.perf_counter()
-        frame = self.featurizer.frame(points, gravity)
+        described = self.trail.cloud(points, pose, cfg.session)
+        frame = self.featurizer.frame(described, gravity)
         views = self.scorer.compact(self.model.standardize(
-            self.featurizer.describe_views(points, self.view_offsets, frame)))
+            self.featurizer.describe_views(described, self.view_offsets, frame)))
         t1 = time.perf_counter()
         found = self.database.query_views(
             views, self.view_offsets, top_k=cfg.top_k, session=cfg.session, stamp=stamp,

@@ -40,10 +40,11 @@ from vbrl_ros.evaluation.baselines.scan_context import (
     scan_context,
 )
 from vbrl_ros.datasets.blocked_wedge import outside_wedge
-from vbrl_ros.datasets.keyframe_selection import select_keyframes, source_points
+from vbrl_ros.datasets.keyframe_selection import keyframe_poses, select_keyframes, source_points
 from vbrl_ros.detection.detector import verification_cloud
 from vbrl_ros.evaluation.verified import KeyframeClouds
 from vbrl_ros.features.parallel import bounded_map, default_workers
+from vbrl_ros.features.trail import with_trail
 
 __all__ = ["SourceDescriptors", "describe_source", "VBRLMethod", "ScanContextMethod",
            "scorer_top_k"]
@@ -79,13 +80,17 @@ def _init_worker(config_dict: dict, sc_dict: dict, offsets: np.ndarray, voxel: f
     _worker = (Featurizer(VBRLConfig.from_dict(config_dict)), ScanContextConfig(**sc_dict), offsets, voxel)
 
 
-def _describe(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
-    """(views (V, d), Scan Context, verification cloud or None, levelled frame 4x4): the VBRL
-    views and the cloud as the node computes them."""
+def _describe(scan: tuple[np.ndarray, np.ndarray | None]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
+                                                                   np.ndarray]:
+    """(views (V, d), Scan Context, verification cloud or None, levelled frame 4x4) of (points, the
+    cloud VBRL describes them by or None for the points themselves): the VBRL views and the
+    cloud as the node computes them; Scan Context reads the scan alone, as published."""
     assert _worker is not None
     featurizer, sc_config, offsets, voxel = _worker
-    frame = featurizer.frame(points)
-    views = featurizer.describe_views(points, offsets, frame)
+    points, described = scan
+    described = points if described is None else described
+    frame = featurizer.frame(described)
+    views = featurizer.describe_views(described, offsets, frame)
     cloud = None if voxel is None else verification_cloud(points, frame.matrix, voxel)
     return views, scan_context(points, sc_config), cloud, frame.matrix
 
@@ -118,6 +123,8 @@ def describe_source(
         scans = source_points(source, indices)
         if blocked_azimuth is not None:
             scans = (points[outside_wedge(points, blocked_azimuth)] for points in scans)
+        pairs = ((points, None if cloud is points else cloud) for points, cloud in
+                 with_trail(scans, keyframe_poses(source, indices), config.features.trail_m))
         bar = tqdm(total=len(indices), desc=f"describing {source.name}", unit="scan",
                    disable=not progress, leave=False)
         vbrl, sc, clouds, frames = [], [], [], []
@@ -125,10 +132,10 @@ def describe_source(
             stack.callback(bar.close)
             if workers <= 1:
                 _init_worker(*init)
-                rows = map(_describe, scans)
+                rows = map(_describe, pairs)
             else:
                 pool = stack.enter_context(ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init))
-                rows = bounded_map(pool, _describe, scans, 4 * workers)
+                rows = bounded_map(pool, _describe, pairs, 4 * workers)
             for views_of_scan, context, cloud, frame in rows:
                 vbrl.append(views_of_scan), sc.append(context), clouds.append(cloud), frames.append(frame)
                 bar.update()

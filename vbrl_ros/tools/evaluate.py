@@ -18,12 +18,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from vbrl_ros.config import MAX_TRAIL_M
 from vbrl_ros.datasets.blocked_wedge import checked_wedge
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.tools import evaluate_verified
@@ -69,6 +70,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--translation-search", type=float, default=None, metavar="M",
                         help="VBRL: also describe each query from viewpoints M metres around it, as "
                              "the node does (default: the model's own setting; 0: off)")
+    parser.add_argument("--trail", type=float, default=None, metavar="M",
+                        help="VBRL: describe each keyframe with the keyframes of the last M metres merged "
+                             "in by the source's poses, as the node does with odometry (default: the "
+                             "model's own setting; 0: each keyframe alone)")
     parser.add_argument("--sequence-length", type=int, default=DETECTOR_DEFAULTS.sequence_length, metavar="N",
                         help="VBRL: score each candidate over this many keyframes, the query and the "
                              "ones before it, as the node's sequence_length (default "
@@ -178,6 +183,7 @@ class Evaluation:
     notes: list[str]
     alignment: np.ndarray | None
     radii: list[float]
+    trail_m: float = 0.0  # metres of keyframes merged into each one before VBRL describes it
 
     def title(self, exclude: int) -> str:
         if self.protocol == "P1":
@@ -212,6 +218,8 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise ValueError("--align only applies to P2 (--against)")
     if args.translation_search is not None and not 0 <= args.translation_search <= 10:
         raise ValueError("--translation-search must be a step in [0, 10] metres")
+    if args.trail is not None and not (math.isfinite(args.trail) and 0 <= args.trail <= MAX_TRAIL_M):
+        raise ValueError(f"--trail must be a number of metres in [0, {MAX_TRAIL_M:g}]")
     for flag, length in (("--sequence-length", args.sequence_length),
                          ("--sc-sequence-length", args.sc_sequence_length)):
         if not 1 <= length <= 20:
@@ -242,6 +250,8 @@ def load(args: argparse.Namespace) -> Evaluation:
     models, notes = load_models(args.model or DEFAULT_MODEL_PATH, args.ablations)
     full = models[FULL_NAME]
     config = full.config
+    if args.trail is not None:  # describing only: every variant keeps its weights
+        config = replace(config, features=replace(config.features, trail_m=float(args.trail)))
     notes += in_sample_warnings(full, [args.query, args.against])
     if args.blocked_azimuth is not None:
         notes.append("every scan hidden from {:g} to {:g} degrees azimuth (--blocked-azimuth)".format(
@@ -259,13 +269,14 @@ def load(args: argparse.Namespace) -> Evaluation:
     for source in {id(queries): queries, id(database): database}.values():
         if source.positions is None or not np.isfinite(source.positions).all():
             raise ValueError(f"{source.name}: every keyframe needs a pose for the ground truth "
-                             "(--poses kiss-icp or file:poses.txt); matching itself never uses them")
+                             "(--poses kiss-icp or file:poses.txt); matching uses them only as the node "
+                             "uses odometry")
     methods: list[Any] = [VBRLMethod(name, m, exact=args.exact, prune=args.prune,
                                      sequence_length=args.sequence_length) for name, m in models.items()]
     if args.scan_context:
         methods.append(ScanContextMethod(sc_config, args.sc_candidates, args.sc_sequence_length))
     return Evaluation("P1" if args.against is None else "P2", queries, database, models, methods,
-                      notes, alignment, sorted({float(args.radius), *REPORT_RADII}))
+                      notes, alignment, sorted({float(args.radius), *REPORT_RADII}), config.features.trail_m)
 
 
 def retrieve(args: argparse.Namespace, evaluation: Evaluation, method: Any) -> RetrievalResults:
@@ -390,6 +401,7 @@ def write_metrics(args: argparse.Namespace, evaluation: Evaluation,
         "methods": list(metrics), "notes": evaluation.notes,
         "retrieval": "exact" if args.exact else "index", "prune": args.prune,
         "grid": evaluation.models[FULL_NAME].config.grid.kind, "exact_agreement": agreement,
+        "trail_m": evaluation.trail_m,
         "metrics": {name: {f"{r:g}": m.summary() for r, m in by_r.items()}
                     for name, by_r in metrics.items()},
         "verified": None if verified is None else verified.summary(metrics),

@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 
 from vbrl_ros.config import VBRLConfig
-from vbrl_ros.datasets.keyframe_selection import select_keyframes, source_points
+from vbrl_ros.datasets.keyframe_selection import keyframe_poses, select_keyframes, source_points
 from vbrl_ros.datasets.registry import open_source
 from vbrl_ros.features.parallel import featurize
+from vbrl_ros.features.trail import trail_clouds
 
 
 @dataclass
@@ -51,7 +52,8 @@ def load_training_data(
         with open_source(path, topic=topic, poses=poses, progress=progress) as source:
             indices = select_keyframes(source, distance=keyframe_distance, every=every)
             descriptors = featurize(
-                source_points(source, indices), config, total=len(indices), workers=workers,
+                trail_clouds(source_points(source, indices), keyframe_poses(source, indices),
+                             config.features.trail_m), config, total=len(indices), workers=workers,
                 progress=progress, description=f"featurizing {source.name}",
             )
             rows.append(descriptors)
