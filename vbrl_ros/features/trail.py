@@ -3,16 +3,16 @@
 A hand-held Livox (2–3k points a scan) or a robot's voxel-thinned keyframe holds too little of
 its place for one descriptor to pin it down. The keyframes of the last ``trail_m`` metres of
 odometry are merged into the keyframe's own frame before it is described (odometry is good to
-centimetres over a few metres), so it is described from a denser cloud of the same place. A
-trail of 3 m lifted the hand-held Mid-360 walk's retrieval most; 5 m and more cost the courtyard
-recording, whose revisits come from other directions and so along other trails (docs/results.md).
+centimetres over a few metres), so it is described from a denser cloud of the same place. Of
+1.5, 3 and 5 m, 3 m helped the hand-held recordings most (``vbrl eval --trail``,
+docs/results.md): a longer trail reaches where a revisit from another direction came from.
 
 Only the keyframe's own blind wedges count: merged-in keyframes would fill part of the wedge a
 mast hides, and the descriptor would then no longer hide its mirror image
 (:mod:`.blind_wedges`), so merged points in the keyframe's blind wedges and their mirror images
-are dropped. A forward-looking scan is described alone: its trail lies behind it, where a revisit
-coming the same way does not look twice (a simulated forward-looking town lost Recall@1
-.935 → .765 with it).
+are dropped. A forward-looking scan is described alone: its trail lies behind it, outside what
+it sees, and adds what a revisit from ahead never saw. A dense scan (``TRAIL_POINTS``) is
+described alone too: it holds its place already, and merging would multiply its describing time.
 """
 
 from __future__ import annotations
