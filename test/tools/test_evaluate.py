@@ -194,6 +194,16 @@ def test_a_trail_changes_what_vbrl_describes_and_is_reported(trained, tmp_path, 
         assert _read(out)["trail_m"] == (0.0 if trail is None else 12.0)  # the paper model has none
     alone, trailed = ([row["distance"] for row in _read(dumps[t])] for t in (None, "12"))
     assert alone != pytest.approx(trailed)
+    # Scan Context reads the scan alone unless told to read the same trail, like for like
+    reports = {}
+    for extra in ([], ["--sc-trail"]):
+        reports[bool(extra)] = out = tmp_path / f"sc{bool(extra)}.json"
+        assert vbrl(monkeypatch, "eval", summer, "--model", model, "--json", out, "--exclude", "20",
+                    "--no-ablations", "--quiet", "--workers", "1", "--trail", "12", *extra) == 0
+    plain, trailed_sc = (_read(reports[k]) for k in (False, True))
+    assert (plain["sc_trail"], trailed_sc["sc_trail"]) == (False, True)
+    assert plain["metrics"]["VBRL"] == trailed_sc["metrics"]["VBRL"]
+    assert plain["metrics"]["Scan Context"] != trailed_sc["metrics"]["Scan Context"]
     assert vbrl(monkeypatch, "eval", summer, "--model", model, "--trail", "-1", "--quiet") == 2
     assert capsys.readouterr().err.strip() == "vbrl eval: error: --trail must be a number of metres in [0, 20]"
 

@@ -72,27 +72,30 @@ class SourceDescriptors:
         return len(self.keyframe_index)
 
 
-_worker: tuple[Featurizer, ScanContextConfig, np.ndarray, float | None] | None = None
+_worker: tuple[Featurizer, ScanContextConfig, np.ndarray, float | None, bool] | None = None
 
 
-def _init_worker(config_dict: dict, sc_dict: dict, offsets: np.ndarray, voxel: float | None) -> None:
+def _init_worker(config_dict: dict, sc_dict: dict, offsets: np.ndarray, voxel: float | None,
+                 sc_trail: bool) -> None:
     global _worker
-    _worker = (Featurizer(VBRLConfig.from_dict(config_dict)), ScanContextConfig(**sc_dict), offsets, voxel)
+    _worker = (Featurizer(VBRLConfig.from_dict(config_dict)), ScanContextConfig(**sc_dict), offsets, voxel,
+               sc_trail)
 
 
 def _describe(scan: tuple[np.ndarray, np.ndarray | None]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
                                                                    np.ndarray]:
     """(views (V, d), Scan Context, verification cloud or None, levelled frame 4x4) of (points, the
     cloud VBRL describes them by or None for the points themselves): the VBRL views and the
-    cloud as the node computes them; Scan Context reads the scan alone, as published."""
+    cloud as the node computes them; Scan Context reads the scan alone, as published, unless
+    told to read the same cloud as VBRL."""
     assert _worker is not None
-    featurizer, sc_config, offsets, voxel = _worker
+    featurizer, sc_config, offsets, voxel, sc_trail = _worker
     points, described = scan
     described = points if described is None else described
     frame = featurizer.frame(described)
     views = featurizer.describe_views(described, offsets, frame)
     cloud = None if voxel is None else verification_cloud(points, frame.matrix, voxel)
-    return views, scan_context(points, sc_config), cloud, frame.matrix
+    return views, scan_context(described if sc_trail else points, sc_config), cloud, frame.matrix
 
 
 def describe_source(
@@ -109,15 +112,16 @@ def describe_source(
     translation_search: float = 0.0,
     verification_voxel: float | None = None,
     blocked_azimuth: tuple[float, float] | None = None,
+    sc_trail: bool = False,
 ) -> SourceDescriptors:
     """Read the keyframes of ``path`` once and compute both descriptors of each (and the VBRL
     views of :func:`~vbrl_ros.index.translation_search.view_offsets` for ``translation_search`` > 0;
     with ``verification_voxel`` also the clouds the node would keep for verification).
     ``blocked_azimuth``: a wedge of every scan (sensor frame, degrees) hidden first, as a mast
-    would hide it."""
+    would hide it. ``sc_trail``: Scan Context reads each keyframe with its trail too, as VBRL does."""
     workers = default_workers() if workers is None else workers
     offsets = view_offsets(translation_search)
-    init = (config.to_dict(), asdict(sc_config), offsets, verification_voxel)
+    init = (config.to_dict(), asdict(sc_config), offsets, verification_voxel, sc_trail)
     with open_source(path, topic=topic, poses=poses, progress=progress) as source:
         indices = select_keyframes(source, distance=keyframe_distance, every=every)
         scans = source_points(source, indices)

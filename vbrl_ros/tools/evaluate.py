@@ -118,6 +118,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--sc-sequence-length", type=int, default=1, metavar="N",
                         help="Scan Context: rank with VBRL's sequence matching over N keyframes, "
                              "for a like-for-like comparison (default 1: Scan Context as published)")
+    parser.add_argument("--sc-trail", action="store_true",
+                        help="Scan Context: read each keyframe with the same trail as VBRL, for a "
+                             "like-for-like comparison (default: the scan alone, as published)")
     verify = parser.add_argument_group(
         "verified output", "--verify registers the full model's and Scan Context's top-k candidates "
         "with KISS-ICP as the node does and reports the verified closures beside retrieval: swept "
@@ -262,7 +265,7 @@ def load(args: argparse.Namespace) -> Evaluation:
                    every=args.every, workers=args.workers, progress=not args.quiet,
                    translation_search=step,
                    verification_voxel=DETECTOR_DEFAULTS.verification_voxel if args.verify else None,
-                   blocked_azimuth=args.blocked_azimuth)
+                   blocked_azimuth=args.blocked_azimuth, sc_trail=args.sc_trail)
     queries = describe_source(args.query, config, sc_config, **options)
     database = queries if args.against is None else describe_source(args.against, config, sc_config,
                                                                      **options)
@@ -401,7 +404,7 @@ def write_metrics(args: argparse.Namespace, evaluation: Evaluation,
         "methods": list(metrics), "notes": evaluation.notes,
         "retrieval": "exact" if args.exact else "index", "prune": args.prune,
         "grid": evaluation.models[FULL_NAME].config.grid.kind, "exact_agreement": agreement,
-        "trail_m": evaluation.trail_m,
+        "trail_m": evaluation.trail_m, "sc_trail": bool(args.sc_trail),
         "metrics": {name: {f"{r:g}": m.summary() for r, m in by_r.items()}
                     for name, by_r in metrics.items()},
         "verified": None if verified is None else verified.summary(metrics),
