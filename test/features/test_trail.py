@@ -145,6 +145,7 @@ def test_a_dense_keyframe_is_described_alone_and_a_sparse_one_takes_what_it_lack
     trail.cloud(seen_from(dense_world, pose_at(0.0)), pose_at(0.0))
     dense = seen_from(dense_world, pose_at(1.0))
     assert trail.cloud(dense, pose_at(1.0)) is dense
+    assert len(trail) == 0  # and neither is kept
     sparse_trail = Trail(3.0)
     for x in (0.0, 0.5, 1.0, 1.5):  # 3 x 40k points before, nearest first until 100k
         sparse_trail.cloud(seen_from(walls(rng, 40_000), pose_at(x)), pose_at(x))

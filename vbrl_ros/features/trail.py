@@ -66,10 +66,12 @@ class Trail:
         when there is nothing to merge. ``pose``: T_world_lidar, None when unknown."""
         if self.reach_m == 0.0:
             return points
-        if pose is None or not np.all(np.isfinite(pose)) or session != self._session:
+        # a dense keyframe is described alone and not kept: a trail of them would hold ~1 MB each
+        usable = pose is not None and bool(np.all(np.isfinite(pose))) and len(points) < TRAIL_POINTS
+        if not usable or session != self._session:
             self.clear()
             self._session = session
-            if pose is None or not np.all(np.isfinite(pose)):
+            if not usable:
                 return points
         pose = np.asarray(pose, np.float64)
         if self._earlier:
@@ -90,7 +92,7 @@ class Trail:
         self._earlier = deque(kept)
 
     def _merged(self, xyz: np.ndarray, pose: np.ndarray) -> np.ndarray | None:
-        if not self._earlier or not 0 < len(xyz) < TRAIL_POINTS:
+        if not self._earlier or not len(xyz):
             return None
         bins = azimuth_bins(xyz[:, :2])
         if not sees_around(xyz[:, :2], bins):
