@@ -63,3 +63,27 @@ def test_needs_two_scans():
     X, labels = _problem(1)
     with pytest.raises(ValueError, match="at least 2"):
         _stream(X, labels, 1).standardized()
+
+
+def test_streamed_and_in_memory_training_read_the_same_trailed_keyframes(tmp_path):
+    """Both training paths describe each keyframe with the config's trail, from the source's poses."""
+    from dataclasses import replace
+
+    from vbrl_ros.datasets.kitti_style import write_kitti_style
+    from vbrl_ros.training.streaming import stream_moments
+    from vbrl_ros.training.training_data import load_training_data
+
+    sim = pytest.importorskip("vbrl_ros.simulator")
+    town = sim.generate_town(sim.TownConfig(blocks_x=2, blocks_y=2), seed=5)
+    run = sim.simulate_run(town, sim.make_route(town, sim.RouteConfig(loops=1, spacing_m=1.0, max_scans=8)),
+                           sim.LidarConfig(beams=16, columns=360), "summer_clear", seed=1)
+    folder = write_kitti_style(tmp_path / "run", run.point_clouds(progress=False), run.poses, run.stamps)
+    options = dict(topic=None, poses="auto", keyframe_distance=None, every=None, workers=1, progress=False)
+    means = {}
+    for trail in (0.0, 3.0):
+        config = replace(SMALL, features=replace(SMALL.features, trail_m=trail))
+        data = load_training_data([folder], config, labels=None, **options)
+        moments, _ = stream_moments([folder], ["run"], config, **options)
+        means[trail] = data.descriptors.astype(np.float64).mean(axis=0)
+        np.testing.assert_allclose(moments.standardized()[1], means[trail], rtol=1e-6, atol=1e-9)
+    assert not np.allclose(means[0.0], means[3.0])  # the trail changed what both read
