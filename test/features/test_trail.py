@@ -147,7 +147,8 @@ def test_a_dense_keyframe_is_described_alone_and_a_sparse_one_takes_what_it_lack
     assert trail.cloud(dense, pose_at(1.0)) is dense
     assert len(trail) == 0  # and neither is kept
     sparse_trail = Trail(3.0)
-    for x in (0.0, 0.5, 1.0, 1.5):  # 3 x 40k points before, nearest first until 100k
-        sparse_trail.cloud(seen_from(walls(rng, 40_000), pose_at(x)), pose_at(x))
+    part = TRAIL_POINTS * 3 // 8
+    for x in (0.0, 0.5, 1.0, 1.5):  # nearest first until the cloud holds TRAIL_POINTS: three of four
+        sparse_trail.cloud(seen_from(walls(rng, part), pose_at(x)), pose_at(x))
     sparse = seen_from(walls(rng, 1000), pose_at(2.0))
-    assert len(sparse_trail.cloud(sparse, pose_at(2.0))) == 1000 + 3 * 40_000
+    assert len(sparse_trail.cloud(sparse, pose_at(2.0))) == 1000 + 3 * part
