@@ -29,9 +29,8 @@ from vbrl_ros.features.blind_wedges import BINS, azimuth_bins, blind_bins, sees_
 MAX_TRAIL_KEYFRAMES = 40
 #: Earlier keyframes are merged, nearest first, until the cloud holds this many points; a keyframe
 #: as dense (a 64-128-beam scan) is described alone, in the time one scan takes. Merged, such
-#: scans gained nothing in clear weather and lost in snow: earlier scans' snowflakes are not lone
-#: any more (a simulated 64-beam car's second session in snow, 87k points a scan: Recall@1 .935
-#: alone, .747 with a 3 m trail, `vbrl eval --trail`).
+#: scans gained nothing in clear weather and lost revisits in snow, whose earlier flakes are not
+#: lone returns any more (docs/results.md, "A keyframe's trail").
 TRAIL_POINTS = 40_000
 
 
