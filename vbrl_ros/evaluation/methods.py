@@ -127,6 +127,7 @@ def describe_source(
         scans = source_points(source, indices)
         if blocked_azimuth is not None:
             scans = (points[outside_wedge(points, blocked_azimuth)] for points in scans)
+        # None where the scan is described alone: the worker is not sent the same points twice
         pairs = ((points, None if cloud is points else cloud) for points, cloud in
                  with_trail(scans, keyframe_poses(source, indices), config.features.trail_m))
         bar = tqdm(total=len(indices), desc=f"describing {source.name}", unit="scan",
