@@ -121,28 +121,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--sc-trail", action="store_true",
                         help="Scan Context: read each keyframe with the same trail as VBRL, for a "
                              "like-for-like comparison (default: the scan alone, as published)")
-    verify = parser.add_argument_group(
-        "verified output", "--verify registers the full model's and Scan Context's top-k candidates "
-        "with KISS-ICP as the node does and reports the verified closures beside retrieval: swept "
-        "over fitness (best verified candidate per query), and at the node's settings")
-    verify.add_argument("--verify", action="store_true", help="evaluate the verified output too")
-    verify.add_argument("--verify-top-k", type=int, default=DETECTOR_DEFAULTS.top_k, metavar="K",
-                        help="candidates verified per query, as the node's top_k")
-    verify.add_argument("--min-fitness", type=float, nargs="+", default=[DETECTOR_DEFAULTS.min_fitness],
-                        metavar="F", help="the node's min_fitness: an operating point for each value")
-    verify.add_argument("--distance-threshold", type=float, default=None, metavar="D",
-                        help="VBRL: verify only candidates at or below this distance, for the "
-                             "operating point (default: every one of the top-k, as the node)")
-    verify.add_argument("--max-closure-distance", type=float,
-                        default=DETECTOR_DEFAULTS.max_closure_distance, metavar="M",
-                        help="the node's max_closure_distance, metres")
-    verify.add_argument("--submap-keyframes", type=int, default=DETECTOR_DEFAULTS.submap_keyframes, metavar="N",
-                        help="the node's submap_keyframes: neighbours merged into each verified cloud by the "
-                             "source's poses (0: single scans)")
-    verify.add_argument("--odometry-drift", type=float, default=DETECTOR_DEFAULTS.odometry_drift, metavar="S",
-                        help="the node's odometry_drift: P1 candidates the source's poses place farther than "
-                             "max_closure_distance + 5 m + S x the path between them are rejected unverified "
-                             "(0: off)")
+    evaluate_verified.add_arguments(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
 
