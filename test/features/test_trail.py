@@ -148,14 +148,27 @@ def test_a_dense_keyframe_is_described_alone_and_a_sparse_one_takes_what_it_lack
     assert len(trail) == 0  # and neither is kept
     sparse_trail = Trail(3.0)
     part = TRAIL_POINTS * 3 // 8
-    for x in (0.0, 0.5, 1.0, 1.5):  # nearest first until the cloud holds TRAIL_POINTS: three of four
+    for x in (0.0, 0.5, 1.0, 1.5):
         sparse_trail.cloud(seen_from(walls(rng, part), pose_at(x)), pose_at(x))
     sparse = seen_from(walls(rng, 1000), pose_at(2.0))
-    assert len(sparse_trail.cloud(sparse, pose_at(2.0))) == 1000 + 3 * part
+    # nearest first: two earlier keyframes whole, every second point of the third, then what fits of the fourth
+    third = len(range(0, part, 2))
+    room = TRAIL_POINTS - 1000 - 2 * part - third
+    fourth = len(range(0, part, -(-part // room)))
+    assert len(sparse_trail.cloud(sparse, pose_at(2.0))) == 1000 + 2 * part + third + fourth <= TRAIL_POINTS
 
 
-@pytest.mark.parametrize(("beams", "scenario"), [(32, "winter_snow"), (32, "autumn_fog"), (16, "summer_clear")])
-def test_a_spinning_scan_of_32_beams_is_dense_enough_to_be_described_alone(beams, scenario):
+def test_a_keyframe_just_below_the_fill_takes_only_a_few_earlier_points():
+    rng = np.random.default_rng(8)
+    trail = Trail(3.0)
+    trail.cloud(seen_from(walls(rng, TRAIL_POINTS - 10), pose_at(0.0)), pose_at(0.0))
+    almost = seen_from(walls(rng, TRAIL_POINTS - 100), pose_at(1.0))
+    assert TRAIL_POINTS - 100 < len(trail.cloud(almost, pose_at(1.0))) <= TRAIL_POINTS
+
+
+@pytest.mark.parametrize(("beams", "scenario", "alone"),
+                         [(32, "summer_clear", True), (32, "winter_snow", True), (16, "summer_clear", False)])
+def test_a_spinning_scan_of_32_beams_is_dense_enough_to_be_described_alone(beams, scenario, alone):
     # merged, 32-beam scans in snow kept the flakes of earlier scans (docs/results.md)
     sim = pytest.importorskip("vbrl_ros.simulator")
     town = sim.generate_town(sim.TownConfig(blocks_x=2, blocks_y=2), seed=5)
@@ -164,4 +177,6 @@ def test_a_spinning_scan_of_32_beams_is_dense_enough_to_be_described_alone(beams
     first, second = run[0].points, run[1].points  # a run renders a scan each time it is read
     trail = Trail(3.0)
     trail.cloud(first, run.poses[0])
-    assert (trail.cloud(second, run.poses[1]) is second) == (beams == 32)
+    described = trail.cloud(second, run.poses[1])
+    assert (described is second) == alone
+    assert alone or len(second) < len(described) <= TRAIL_POINTS

@@ -13,6 +13,8 @@ mast hides, and the descriptor would then no longer hide its mirror image
 are dropped. A forward-looking scan is described alone: its trail lies behind it, outside what
 it sees, and adds what a revisit from ahead never saw. A dense scan (``TRAIL_POINTS``) is
 described alone too: it holds its place already, and merged it lost revisits in snow and fog.
+The trail fills a keyframe's cloud up to that count, so one just below it takes a few earlier
+points, and its descriptor does not jump between two scans on either side of the count.
 """
 
 from __future__ import annotations
@@ -27,13 +29,14 @@ from vbrl_ros.features.blind_wedges import BINS, azimuth_bins, blind_bins, sees_
 
 #: At most this many earlier keyframes are kept, however short their spacing.
 MAX_TRAIL_KEYFRAMES = 40
-#: Earlier keyframes are merged, nearest first, until the cloud holds this many points; a keyframe
-#: as dense is described alone, in the time one scan takes: a spinning scan of 32 beams or more
-#: (23-31k points of 32 x 1024 rays in the simulator, fog to clear). Merged, such scans gained
-#: little in clear weather and lost revisits in snow and fog, whose flakes from earlier scans
-#: stand beside the keyframe's own and are no longer lone returns the clutter test drops
-#: (simulated 32-beam car in snow: Recall@1 .991 alone, .924 trailed; docs/results.md).
-TRAIL_POINTS = 20_000
+#: Earlier keyframes are merged, nearest first, to fill the cloud up to this many points; a keyframe
+#: as dense is described alone, in the time one scan takes. A spinning scan of 32 beams (24-32k
+#: points of 32 x 1024 rays in the simulator, snow to clear) merged with a whole earlier scan
+#: gained little in clear weather and lost revisits in snow and fog, whose flakes from the
+#: earlier scan stand beside the keyframe's own and are no longer lone returns the clutter test
+#: drops (simulated 32-beam car in snow: Recall@1 .991 alone, .924 trailed; docs/results.md).
+#: Filling up rather than merging whole scans keeps the descriptor from jumping at this count.
+TRAIL_POINTS = 25_000
 
 
 @dataclass(frozen=True)
@@ -104,11 +107,15 @@ class Trail:
         to_keyframe = np.linalg.inv(pose)
         parts, total = [xyz], len(xyz)
         for earlier in reversed(self._earlier):  # nearest first
-            if total >= TRAIL_POINTS:
+            room = TRAIL_POINTS - total
+            if room <= 0:
                 break
+            # the last one only tops the cloud up (every k-th point), so a keyframe just below
+            # TRAIL_POINTS takes a few earlier points, not a whole scan and its flakes
+            points = earlier.points[::-(-len(earlier.points) // room)]
             T = to_keyframe @ earlier.pose
-            parts.append((earlier.points @ T[:3, :3].T + T[:3, 3]).astype(np.float32))
-            total += len(earlier.points)
+            parts.append((points @ T[:3, :3].T + T[:3, 3]).astype(np.float32))
+            total += len(points)
         merged = np.concatenate(parts)
         blind = blind_bins(xyz[:, :2], bins)
         hidden = blind | np.roll(blind, BINS // 2)
