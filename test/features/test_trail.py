@@ -158,6 +158,16 @@ def test_a_dense_keyframe_is_described_alone_and_a_sparse_one_takes_what_it_lack
     assert len(sparse_trail.cloud(sparse, pose_at(2.0))) == 1000 + 2 * part + third + fourth <= TRAIL_POINTS
 
 
+def test_an_empty_keyframe_in_the_trail_adds_nothing_and_breaks_nothing():
+    rng = np.random.default_rng(9)
+    world = walls(rng)
+    trail = Trail(3.0)
+    trail.cloud(seen_from(world, pose_at(0.0)), pose_at(0.0))
+    trail.cloud(np.zeros((0, 3), np.float32), pose_at(0.5))  # e.g. every return filtered out
+    scan = seen_from(world, pose_at(1.0))
+    assert len(trail.cloud(scan, pose_at(1.0))) == 2 * len(scan)
+
+
 def test_a_keyframe_just_below_the_fill_takes_only_a_few_earlier_points():
     rng = np.random.default_rng(8)
     trail = Trail(3.0)

@@ -112,7 +112,7 @@ class Trail:
                 break
             # the last one only tops the cloud up (every k-th point), so a keyframe just below
             # TRAIL_POINTS takes a few earlier points, not a whole scan and its flakes
-            points = earlier.points[::-(-len(earlier.points) // room)]
+            points = earlier.points[::max(1, -(-len(earlier.points) // room))]  # an empty one: step 1
             T = to_keyframe @ earlier.pose
             parts.append((points @ T[:3, :3].T + T[:3, 3]).astype(np.float32))
             total += len(points)
