@@ -41,15 +41,15 @@ import numpy as np
 from tqdm import tqdm
 
 from vbrl_ros.config import VBRLConfig
-from vbrl_ros.datasets.keyframe_selection import keyframe_poses, select_keyframes, source_points
+from vbrl_ros.datasets.keyframe_selection import select_keyframes
 from vbrl_ros.datasets.registry import open_source
 from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.features.parallel import bounded_map, default_workers, describe_in_worker, init_worker
-from vbrl_ros.features.trail import trail_clouds
 from vbrl_ros.model.gram import GramAccumulator, GramStats
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.model.solver import solve_vbrl
 from vbrl_ros.training.fit import MIN_FEATURE_SCALE, TrainingResult, pool_tied, row_groups
+from vbrl_ros.training.training_data import described_clouds
 
 DEFAULT_CHUNK = 512  # keyframes per Gram update: large enough for BLAS, small next to G
 
@@ -213,8 +213,7 @@ def stream_moments(
         for path, name in zip(paths, names):
             with open_source(path, topic=topic, poses=poses, progress=progress) as source:
                 indices = select_keyframes(source, distance=keyframe_distance, every=every)
-                scans = trail_clouds(source_points(source, indices), keyframe_poses(source, indices),
-                                     config.features.trail_m)
+                scans = described_clouds(source, indices, config)
                 rows = (bounded_map(pool, describe_in_worker, scans, 4 * workers) if pool
                         else map(featurizer.describe, scans))
                 bar = tqdm(total=len(indices), desc=f"streaming {source.name}", unit="scan",

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from vbrl_ros.config import VBRLConfig
+from vbrl_ros.datasets.base import ScanSource
 from vbrl_ros.datasets.keyframe_selection import keyframe_poses, select_keyframes, source_points
 from vbrl_ros.datasets.registry import open_source
 from vbrl_ros.features.parallel import featurize
@@ -24,6 +26,11 @@ class TrainingData:
     positions: np.ndarray  # (n, 3), NaN where unknown
     source_of_row: np.ndarray  # (n,) index into the sources
     keyframe_index: np.ndarray  # (n,) scan index inside its source
+
+
+def described_clouds(source: ScanSource, indices: Sequence[int], config: VBRLConfig) -> Iterator[np.ndarray]:
+    """The clouds the keyframes ``indices`` of ``source`` are described by: each with its trail."""
+    return trail_clouds(source_points(source, indices), keyframe_poses(source, indices), config.features.trail_m)
 
 
 def source_labels(paths: list[Path], labels: list[str] | None) -> list[str]:
@@ -52,8 +59,7 @@ def load_training_data(
         with open_source(path, topic=topic, poses=poses, progress=progress) as source:
             indices = select_keyframes(source, distance=keyframe_distance, every=every)
             descriptors = featurize(
-                trail_clouds(source_points(source, indices), keyframe_poses(source, indices),
-                             config.features.trail_m), config, total=len(indices), workers=workers,
+                described_clouds(source, indices, config), config, total=len(indices), workers=workers,
                 progress=progress, description=f"featurizing {source.name}",
             )
             rows.append(descriptors)
