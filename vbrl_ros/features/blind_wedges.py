@@ -41,17 +41,22 @@ def empty_bins(xy: np.ndarray, bins: np.ndarray | None = None) -> np.ndarray:
     return np.bincount(bins[far], minlength=BINS) == 0
 
 
-def sees_around(xy: np.ndarray, bins: np.ndarray | None = None) -> bool:
-    """Whether the scan saw at least ``MIN_SEEN_FRACTION`` of the circle (not forward-looking)."""
-    return bool(1.0 - empty_bins(xy, bins).mean() >= MIN_SEEN_FRACTION)
+def sees_around(empty: np.ndarray) -> bool:
+    """Whether a scan whose :func:`empty_bins` are ``empty`` saw at least ``MIN_SEEN_FRACTION`` of
+    the circle (not forward-looking)."""
+    return bool(1.0 - empty.mean() >= MIN_SEEN_FRACTION)
 
 
 def blind_bins(xy: np.ndarray, bins: np.ndarray | None = None) -> np.ndarray:
     """(BINS,) bool: the azimuth bins inside runs of at least ``MIN_BLIND_DEG`` with no point
     beyond ``MIN_RANGE_M``; all False when the scan saw less than ``MIN_SEEN_FRACTION``.
     ``bins``: :func:`azimuth_bins` of ``xy``, when the caller has them."""
-    empty = empty_bins(xy, bins)
-    if empty.all() or 1.0 - empty.mean() < MIN_SEEN_FRACTION:
+    return blind_runs(empty_bins(xy, bins))
+
+
+def blind_runs(empty: np.ndarray) -> np.ndarray:
+    """:func:`blind_bins` of a scan whose :func:`empty_bins` are ``empty``."""
+    if empty.all() or not sees_around(empty):
         return np.zeros(BINS, dtype=bool)
     blind = np.zeros(BINS, dtype=bool)
     start = int(np.argmin(empty))  # a seen bin: runs never wrap past it

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vbrl_ros.features.blind_wedges import BINS, azimuth_bins, blind_bins, sees_around
+from vbrl_ros.features.blind_wedges import BINS, azimuth_bins, blind_runs, empty_bins, sees_around
 
 #: At most this many earlier keyframes are kept, however short their spacing.
 MAX_TRAIL_KEYFRAMES = 40
@@ -101,8 +101,8 @@ class Trail:
     def _merged(self, xyz: np.ndarray, pose: np.ndarray) -> np.ndarray | None:
         if not self._earlier or not len(xyz):
             return None
-        bins = azimuth_bins(xyz[:, :2])
-        if not sees_around(xyz[:, :2], bins):
+        empty = empty_bins(xyz[:, :2])
+        if not sees_around(empty):
             return None
         to_keyframe = np.linalg.inv(pose)
         parts, total = [xyz], len(xyz)
@@ -117,7 +117,7 @@ class Trail:
             parts.append((points @ T[:3, :3].T + T[:3, 3]).astype(np.float32))
             total += len(points)
         merged = np.concatenate(parts)
-        blind = blind_bins(xyz[:, :2], bins)
+        blind = blind_runs(empty)
         hidden = blind | np.roll(blind, BINS // 2)
         if hidden.any():
             merged = merged[~hidden[azimuth_bins(merged[:, :2])]]
