@@ -15,6 +15,7 @@ from vbrl_ros.grids.ground_frame import (
     FALLBACK_HEIGHT_M,
     HYPOTHESES,
     INLIER_M,
+    MAX_HELD_TILT_DEG,
     MAX_RANGE_M,
     MAX_TILT_DEG,
     MIN_INLIERS,
@@ -88,9 +89,10 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 
 SCENE = level_scene()
-#: (height m, roll deg, pitch deg): level, single-axis and combined tilts, low and high mounts.
+#: (height m, roll deg, pitch deg): level, single-axis and combined tilts, low and high mounts,
+#: and hand-held sensors held steeper than the plane search's MAX_TILT_DEG (found by refitting).
 MOUNTS = ((1.8, 0.0, 0.0), (0.5, 0.0, 15.0), (2.4, 20.0, 0.0), (1.2, 10.0, 10.0),
-          (1.8, -14.0, 14.0), (0.8, 25.0, -10.0))
+          (1.8, -14.0, 14.0), (0.8, 25.0, -10.0), (1.5, 0.0, 35.0), (1.2, -28.0, 28.0), (1.0, 40.0, 0.0))
 
 
 @pytest.mark.parametrize("height, roll, pitch", MOUNTS)
@@ -202,6 +204,17 @@ def test_without_ground_the_scan_keeps_its_tilt_and_a_bounded_height():
     assert few.height == pytest.approx(1.2)  # the lowest points stand in for the ground
 
 
+
+@pytest.mark.parametrize("roll", [55.0, 70.0, 90.0])
+def test_no_frame_tilts_a_scan_beyond_the_held_limit(roll):
+    """A wall stands 90 degrees from the ground; a sensor is never levelled by more than
+    MAX_HELD_TILT_DEG, so a wall seen by a sensor held below that limit can never be taken for the
+    ground. Beyond the limit the scene's ground is out of reach: whatever the frame, it tilts the
+    scan by at most the limit."""
+    frame = ground_frame(seen_from(SCENE, 1.5, mount(roll, 0.0)))
+    assert angle_deg(frame.rotation, np.eye(3)) <= MAX_HELD_TILT_DEG + 1e-9
+
+
 def test_matrix_and_apply_agree():
     frame = ground_frame(seen_from(SCENE, 1.2, mount(10.0, 10.0)))
     points = np.random.default_rng(5).normal(0.0, 10.0, (100, 4)).astype(np.float32)
@@ -249,7 +262,7 @@ def fit_by_matrix_product(low: np.ndarray) -> tuple[np.ndarray, float] | None:
     return normal, float(-normal @ centre)
 
 
-@pytest.mark.parametrize("height, roll, pitch", MOUNTS)
+@pytest.mark.parametrize("height, roll, pitch", [m for m in MOUNTS if angle_deg(mount(*m[1:]), np.eye(3)) < MAX_TILT_DEG])
 def test_the_compiled_fit_is_the_matrix_product_fit(height, roll, pitch):
     """Same plane, bit for bit, on rough ground (other samples would give other planes)."""
     rough = SCENE.copy()

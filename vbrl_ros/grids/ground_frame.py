@@ -9,9 +9,13 @@ the sensor.
 The ground is the plane through the lowest points of most ~1 m columns around the sensor:
 a RANSAC over those lowest points (a fixed sample sequence, so a scan always gives the same
 frame) that prefers planes with few points below them, refined by least squares on its
-inliers. With a gravity rotation (odometry's roll and pitch) only the height is fitted.
-Without a ground in sight (indoors on a mast, a sensor looking up) the scan keeps its tilt
-and its lowest points stand in for the ground.
+inliers. The search reaches ``MAX_TILT_DEG``; a hand-held sensor held steeper (up to
+``MAX_HELD_TILT_DEG``) is levelled by fitting again in the frame the last fit levelled, and, when
+no plane in reach held enough of the lowest points, by searches started tilted towards
+several headings. With a
+gravity rotation (odometry's roll and pitch) only the height is fitted. Without a ground in
+sight (indoors on a mast, a sensor looking up) the scan keeps its tilt and its lowest points
+stand in for the ground.
 """
 
 from __future__ import annotations
@@ -26,6 +30,19 @@ CELL_M = 1.0  # lowest-point cell: wide enough to reach the ground between objec
 MIN_RANGE_M, MAX_RANGE_M = 1.0, 30.0
 INLIER_M = 0.15
 MAX_TILT_DEG = 30.0
+#: A fit tilted more than this is fitted again in the frame it levelled, up to MAX_REFITS times:
+#: the ground of a sensor tilted near or beyond MAX_TILT_DEG lies at the edge of the search.
+REFIT_TILT_DEG = 15.0
+MAX_REFITS = 3
+#: No frame tilts the scan further than this: a hand-held sensor is held steeper than a wall is
+#: tilted, and a wall must never become the ground.
+MAX_HELD_TILT_DEG = 45.0
+#: Without a plane within MAX_TILT_DEG that holds this fraction of the lowest points, the search
+#: starts again this many times, tilted by MAX_TILT_DEG towards evenly spaced headings. The
+#: ground seen from a simulated mount holds far more; the best plane in reach of a sensor held at
+#: 35 degrees, far fewer.
+MIN_SUPPORT = 0.2
+STEEP_STARTS = 8
 HYPOTHESES = 128
 MIN_INLIERS = 8
 FALLBACK_HEIGHT_M = (0.3, 3.0)  # without a ground plane: the lowest points, within these bounds
@@ -199,11 +216,71 @@ def ground_frame(points: np.ndarray, gravity_rotation: np.ndarray | None = None)
         xyz = np.ascontiguousarray(np.asarray(points, dtype=np.float64)[:, :3]) @ base.T
     low = lowest_points(xyz, CELL_M, MIN_RANGE_M, MAX_RANGE_M)
     fit = fit_ground(low, max_tilt_deg=MAX_TILT_DEG if gravity_rotation is None else 5.0)
-    if fit is None:
-        below = -float(np.percentile(low[:, 2], 10)) if len(low) else FALLBACK_HEIGHT_M[1]
-        return GroundFrame(base, float(np.clip(below, *FALLBACK_HEIGHT_M)), False)
-    normal, height = fit
-    if gravity_rotation is not None:  # keep the given tilt; the plane only sets the height:
-        # the ground straight below the sensor (on a slope: height / cos(slope))
+    if gravity_rotation is not None:
+        if fit is None:
+            return _without_ground(base, low)
+        normal, height = fit
+        # keep the given tilt; the plane only sets the height: the ground straight below the
+        # sensor (on a slope: height / cos(slope))
         return GroundFrame(base, height / normal[2], True)
-    return GroundFrame(_rotation_onto_z(normal) @ base, height, True)
+    first = None
+    if fit is not None:
+        support = int(_plane_inliers(np.ascontiguousarray(low.T), fit[0], fit[1]).sum())
+        first = (_rotation_onto_z(fit[0]), fit[1], _tilt_deg(fit[0]), support)
+    if first is None or first[3] < MIN_SUPPORT * len(low):  # held steeper than the search reaches?
+        found = [f for f in (first, _steep_fit(points)) if f is not None]
+        if not found:
+            return _without_ground(base, low)
+        first = max(found, key=lambda f: f[3])
+    rotation, height, increment, _ = first
+    # held at 35 degrees, the best plane within MAX_TILT_DEG stops short of the ground: each
+    # refit searches around the last one
+    for _ in range(MAX_REFITS):
+        if increment <= REFIT_TILT_DEG:
+            break
+        refit = _refit(points, rotation)
+        if refit is None:
+            break
+        rotation, height, increment, _ = refit
+    return GroundFrame(rotation, height, True)
+
+
+def _without_ground(base: np.ndarray, low: np.ndarray) -> GroundFrame:
+    """The frame of a scan with no ground plane found: its own tilt, its lowest points as ground."""
+    below = -float(np.percentile(low[:, 2], 10)) if len(low) else FALLBACK_HEIGHT_M[1]
+    return GroundFrame(base, float(np.clip(below, *FALLBACK_HEIGHT_M)), False)
+
+
+def _tilt_deg(normal: np.ndarray) -> float:
+    return math.degrees(math.acos(min(1.0, float(normal[2]))))
+
+
+def _refit(points: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, float, float, int] | None:
+    """The ground fitted in the frame ``rotation`` levels the scan to: (the refined rotation, the
+    height, the refinement's tilt in degrees, the plane's inlier count), or None when no plane is
+    found or the refined frame would tilt the scan by more than ``MAX_HELD_TILT_DEG``."""
+    levelled = np.ascontiguousarray(np.asarray(points, dtype=np.float64)[:, :3]) @ rotation.T
+    low = lowest_points(levelled, CELL_M, MIN_RANGE_M, MAX_RANGE_M)
+    fit = fit_ground(low)
+    if fit is None:
+        return None
+    normal, height = fit
+    refined = _without_yaw(_rotation_onto_z(normal) @ rotation)
+    if refined[2, 2] < math.cos(math.radians(MAX_HELD_TILT_DEG)):
+        return None
+    support = int(_plane_inliers(np.ascontiguousarray(low.T), normal, height).sum())
+    return refined, height, _tilt_deg(normal), support
+
+
+def _steep_fit(points: np.ndarray) -> tuple[np.ndarray, float, float, int] | None:
+    """The best-supported ground of searches started tilted by ``MAX_TILT_DEG`` towards
+    ``STEEP_STARTS`` headings, as :func:`_refit` gives it, or None."""
+    best = None
+    tilt = math.radians(MAX_TILT_DEG)
+    for k in range(STEEP_STARTS):
+        heading = 2.0 * math.pi * k / STEEP_STARTS
+        up = np.array([math.sin(tilt) * math.cos(heading), math.sin(tilt) * math.sin(heading), math.cos(tilt)])
+        refit = _refit(points, _rotation_onto_z(up))
+        if refit is not None and (best is None or refit[3] > best[3]):
+            best = refit
+    return best
