@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from vbrl_ros.datasets.mount_tilt import mount_rotation
 from vbrl_ros.simulator.geometry import Material
 from vbrl_ros.simulator.lidar import LidarConfig, level_cover, render_scan, tilt_angle
-from vbrl_ros.simulator.route import RouteConfig, make_route, mount_rotation
+from vbrl_ros.simulator.route import RouteConfig, make_route
 from vbrl_ros.simulator.run import simulate_run
 from vbrl_ros.simulator.town import TownConfig, generate_town
 from vbrl_ros.tools import simulate as cli

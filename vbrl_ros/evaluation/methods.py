@@ -40,6 +40,7 @@ from vbrl_ros.evaluation.baselines.scan_context import (
     scan_context,
 )
 from vbrl_ros.datasets.blocked_wedge import outside_wedge
+from vbrl_ros.datasets.mount_tilt import mount_rotation, tilted_points, tilted_poses
 from vbrl_ros.datasets.keyframe_selection import keyframe_poses, select_keyframes, source_points
 from vbrl_ros.detection.detector import verification_cloud
 from vbrl_ros.evaluation.verified import KeyframeClouds
@@ -112,24 +113,32 @@ def describe_source(
     translation_search: float = 0.0,
     verification_voxel: float | None = None,
     blocked_azimuth: tuple[float, float] | None = None,
+    mount_tilt: tuple[float, float] | None = None,
     sc_trail: bool = False,
 ) -> SourceDescriptors:
     """Read the keyframes of ``path`` once and compute both descriptors of each (and the VBRL
     views of :func:`~vbrl_ros.index.translation_search.view_offsets` for ``translation_search`` > 0;
     with ``verification_voxel`` also the clouds the node would keep for verification).
     ``blocked_azimuth``: a wedge of every scan (sensor frame, degrees) hidden first, as a mast
-    would hide it. ``sc_trail``: Scan Context reads each keyframe with its trail too, as VBRL does."""
+    would hide it. ``mount_tilt``: (roll, pitch) degrees every scan and pose is turned by first, as
+    if the sensor had been held so (:mod:`vbrl_ros.datasets.mount_tilt`). ``sc_trail``: Scan Context
+    reads each keyframe with its trail too, as VBRL does."""
     workers = default_workers() if workers is None else workers
     offsets = view_offsets(translation_search)
     init = (config.to_dict(), asdict(sc_config), offsets, verification_voxel, sc_trail)
     with open_source(path, topic=topic, poses=poses, progress=progress) as source:
         indices = select_keyframes(source, distance=keyframe_distance, every=every)
         scans = source_points(source, indices)
-        if blocked_azimuth is not None:
+        poses = keyframe_poses(source, indices)
+        if mount_tilt is not None:
+            mount = mount_rotation(*mount_tilt)
+            scans = (tilted_points(points, mount) for points in scans)
+            poses = None if poses is None else tilted_poses(poses, mount)
+        if blocked_azimuth is not None:  # the mast turns with the sensor: hidden in its tilted frame
             scans = (points[outside_wedge(points, blocked_azimuth)] for points in scans)
         # None where the scan is described alone: the worker is not sent the same points twice
         pairs = ((points, None if cloud is points else cloud) for points, cloud in
-                 with_trail(scans, keyframe_poses(source, indices), config.features.trail_m))
+                 with_trail(scans, poses, config.features.trail_m))
         bar = tqdm(total=len(indices), desc=f"describing {source.name}", unit="scan",
                    disable=not progress, leave=False)
         vbrl, sc, clouds, frames = [], [], [], []
@@ -156,7 +165,7 @@ def describe_source(
             views=views if len(offsets) > 1 else None,
             view_offsets=offsets,
             clouds=None if verification_voxel is None else KeyframeClouds(clouds, frames),
-            poses=None if source.poses is None else source.poses[indices].copy(),
+            poses=None if poses is None else np.array(poses),
             stamps=np.asarray(source.stamps, np.float64)[indices].copy(),
         )
 

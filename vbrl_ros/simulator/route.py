@@ -41,6 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
+from vbrl_ros.datasets.mount_tilt import MAX_MOUNT_TILT_DEG, mount_rotation
+
 from .town import Town
 
 # (quadrant sign x, quadrant sign y, first axis) of the loop templates A-D.
@@ -53,9 +55,6 @@ WANDER_CORRELATION_M = 30.0
 #: Largest wander amplitude: beyond it the inner side of a rounded corner tightens towards a cusp.
 MAX_LANE_WANDER_M = 3.0
 _WANDER_SALT = 0x1A7E  # the wander's own random stream, apart from the town's and the run's
-#: Limit on the mount's roll and pitch each; both at the limit tilt the sensor by 60
-#: degrees, what :func:`.lidar.render_scan` renders at most.
-MAX_MOUNT_TILT_DEG = 45.0
 
 
 def _positive(name: str, value: float | None, allow_none: bool = False) -> None:
@@ -230,13 +229,6 @@ def _wander(xy: np.ndarray, amplitude: float, seed: int) -> np.ndarray:
     tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
     right = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
     return xy + (amplitude * np.tanh(process))[:, None] * right
-
-
-def mount_rotation(roll_deg: float, pitch_deg: float) -> np.ndarray:
-    """Ry(pitch) Rx(roll): the tilted sensor's axes in the level, heading-aligned frame."""
-    roll, pitch = math.radians(roll_deg), math.radians(pitch_deg)
-    cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
-    return np.array([[cp, sp * sr, sp * cr], [0.0, cr, -sr], [-sp, cp * sr, cp * cr]])
 
 
 def make_route(town: Town, config: RouteConfig | None = None) -> Route:

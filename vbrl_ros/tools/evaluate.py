@@ -25,9 +25,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from vbrl_ros.config import MAX_TRAIL_M
-from vbrl_ros.datasets.blocked_wedge import checked_wedge
 from vbrl_ros.detection.settings import DetectorSettings
-from vbrl_ros.tools import evaluate_verified
+from vbrl_ros.tools import evaluate_mounting, evaluate_verified
 from vbrl_ros.tools.evaluate_output import format_table, json_safe, write_matches
 from vbrl_ros.tools.evaluate_verified import VerifiedOutputs, verify_outputs
 from vbrl_ros.evaluation.matches_json import matches_to_json
@@ -87,10 +86,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="revisit radius, metres (3); 5 m is always reported too")
     add_keyframe_arguments(parser)
     add_source_arguments(parser)
-    parser.add_argument("--blocked-azimuth", nargs=2, type=float, default=None, metavar=("FROM", "TO"),
-                        help="hide this wedge of every scan (sensor-frame azimuth, degrees counter-clockwise "
-                             "from FROM to TO, in [-180, 180]) from both methods, as a mast or an operator "
-                             "would: what a sensor mounted that way would get here")
+    evaluate_mounting.add_arguments(parser)
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the metrics as JSON")
     parser.add_argument("--plot", type=Path, metavar="FILE",
                         help="PR-curve PNG (default: next to --json, else OUT_DIR/pr.png)")
@@ -206,8 +202,7 @@ def check_arguments(args: argparse.Namespace) -> None:
                          ("--sc-sequence-length", args.sc_sequence_length)):
         if not 1 <= length <= 20:
             raise ValueError(f"{flag} must be an integer in [1, 20]")
-    if args.blocked_azimuth is not None:
-        args.blocked_azimuth = checked_wedge(args.blocked_azimuth, "--blocked-azimuth")
+    evaluate_mounting.check_arguments(args)
     evaluate_verified.check_arguments(args)
     for name, path in (("QUERY_SOURCE", args.query), ("--against", args.against), ("--model", args.model)):
         if path is not None and not Path(path).exists():  # before minutes of describing
@@ -235,9 +230,7 @@ def load(args: argparse.Namespace) -> Evaluation:
     if args.trail is not None:  # describing only: every variant keeps its weights
         config = replace(config, features=replace(config.features, trail_m=float(args.trail)))
     notes += in_sample_warnings(full, [args.query, args.against])
-    if args.blocked_azimuth is not None:
-        notes.append("every scan hidden from {:g} to {:g} degrees azimuth (--blocked-azimuth)".format(
-            *args.blocked_azimuth))
+    notes += evaluate_mounting.notes(args)
     sc_config = ScanContextConfig(max_range=args.sc_max_range, lidar_height=args.sc_lidar_height)
     step = full.translation_search() if args.translation_search is None else args.translation_search
     options = dict(topic=args.topic, poses=args.poses, keyframe_distance=args.keyframe_distance,
@@ -245,7 +238,7 @@ def load(args: argparse.Namespace) -> Evaluation:
                    translation_search=step,
                    verification_voxel=DETECTOR_DEFAULTS.verification_voxel if args.verify else None,
                    blocked_azimuth=args.blocked_azimuth, sc_trail=args.sc_trail)
-    queries = describe_source(args.query, config, sc_config, **options)
+    queries = describe_source(args.query, config, sc_config, mount_tilt=args.mount_tilt, **options)
     database = queries if args.against is None else describe_source(args.against, config, sc_config,
                                                                      **options)
     for source in {id(queries): queries, id(database): database}.values():
@@ -377,7 +370,7 @@ def write_metrics(args: argparse.Namespace, evaluation: Evaluation,
         "radius": float(args.radius), "radii": evaluation.radii,
         "exclude": args.exclude if protocol == "P1" else None,
         "align": None if alignment is None else alignment.tolist(),
-        "blocked_azimuth": None if args.blocked_azimuth is None else list(args.blocked_azimuth),
+        **evaluate_mounting.summary(args),
         "num_query_keyframes": len(evaluation.queries),
         "num_database_keyframes": len(evaluation.database),
         "methods": list(metrics), "notes": evaluation.notes,

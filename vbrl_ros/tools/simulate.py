@@ -15,9 +15,10 @@ import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
+from vbrl_ros.datasets.mount_tilt import mount_rotation
 from vbrl_ros.simulator.keyframes import KeyframeFilter
 from vbrl_ros.simulator.lidar import LidarConfig, level_cover, tilt_angle
-from vbrl_ros.simulator.route import RouteConfig, make_route, mount_rotation
+from vbrl_ros.simulator.route import RouteConfig, make_route
 from vbrl_ros.simulator.run import SimulatedRun, simulate_run
 from vbrl_ros.simulator.scenarios import FOLIAGE_DENSITY, SCENARIO_PRESETS, WEATHER, Scenario
 from vbrl_ros.simulator.town import TownConfig, generate_town
