@@ -30,6 +30,7 @@ def make_scans(count: int) -> list[np.ndarray]:
 def test_write_then_read_round_trips(tmp_path: Path) -> None:
     scans, poses, stamps = make_scans(12), make_poses(12), 1_630_577_758.5 + np.arange(12) * 0.1
     scans[4][0, 1] = np.inf
+    scans[4][1, :3] = 0.0  # a no-return placeholder
     folder = write_kitti_style(tmp_path / "run", (s for s in scans), poses, stamps)
     assert sorted(p.name for p in folder.iterdir()) == ["poses.txt", "times.txt", "velodyne"]
     assert (folder / "velodyne" / "000011.bin").stat().st_size == 61 * 16
@@ -40,11 +41,12 @@ def test_write_then_read_round_trips(tmp_path: Path) -> None:
     np.testing.assert_allclose(source.stamps, stamps, atol=1e-6)
     for index in (0, 10, 11, 4):  # numeric order: 000010 after 000009
         scan = source[index]
-        expected = scans[index][np.isfinite(scans[index][:, :3]).all(axis=1)].astype(np.float64)
+        returns = np.isfinite(scans[index][:, :3]).all(axis=1) & (scans[index][:, :3] != 0).any(axis=1)
+        expected = scans[index][returns].astype(np.float64)
         np.testing.assert_array_equal(scan.points, expected[:, :3])
         np.testing.assert_array_equal(scan.intensity, expected[:, 3])
         assert scan.index == index and scan.stamp == pytest.approx(stamps[index])
-    assert len(source[4].points) == 53
+    assert len(source[4].points) == 52
     assert [s.index for s in source] == list(range(12))
 
 

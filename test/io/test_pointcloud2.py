@@ -110,11 +110,11 @@ def test_decoding_driver_layouts_is_exact(layout: dict) -> None:
     np.testing.assert_array_equal(read_points(msg, skip_nans=True), expected_xyz[~np.isnan(expected_xyz).any(axis=1)])
 
     points, intensity = read_xyz_intensity(msg)
-    finite = np.isfinite(expected_xyz).all(axis=1)
-    np.testing.assert_array_equal(points, expected_xyz[finite])
-    assert points.dtype == np.float64 and points.shape == (finite.sum(), 3)
+    returns = np.isfinite(expected_xyz).all(axis=1) & (expected_xyz != 0).any(axis=1)
+    np.testing.assert_array_equal(points, expected_xyz[returns])
+    assert points.dtype == np.float64 and points.shape == (returns.sum(), 3)
     if "intensity" in values:
-        np.testing.assert_array_equal(intensity, values["intensity"].reshape(n).astype(np.float64)[finite])
+        np.testing.assert_array_equal(intensity, values["intensity"].reshape(n).astype(np.float64)[returns])
     else:
         assert intensity is None
 
@@ -150,6 +150,17 @@ def test_plain_array_encoding_converts_datatypes() -> None:
         encode_cloud(points, ["x", "y", "z"])
     with pytest.raises(ValueError, match="duplicate"):
         encode_cloud(points, ["x", "y", "z", "x"])
+
+
+def test_no_return_placeholders_are_dropped_with_their_intensity() -> None:
+    """Ouster and Livox drivers write (0, 0, 0) where a beam got no return; a point with only
+    some coordinates zero is a return."""
+    points = np.array([[0.0, 0.0, 0.0, 5.0], [0.0, 2.0, -1.0, 6.0], [3.0, 0.0, 0.0, 7.0],
+                       [0.0, 0.0, 0.0, 0.0], [-0.0, 0.0, -0.0, 8.0], [1.0, 1.0, 1.0, 9.0]])
+    msg = SimpleNamespace(**encode_cloud(points, ["x", "y", "z", "intensity"], datatypes=7)._asdict())
+    xyz, intensity = read_xyz_intensity(msg)
+    np.testing.assert_array_equal(xyz, points[[1, 2, 5], :3])
+    np.testing.assert_array_equal(intensity, [6.0, 7.0, 9.0])
 
 
 def test_rclpy_messages_round_trip() -> None:

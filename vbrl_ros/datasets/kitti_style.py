@@ -19,15 +19,17 @@ from tqdm import tqdm
 
 from vbrl_ros.datasets.base import Scan, ScanSource, ScanSourceError
 from vbrl_ros.datasets.poses import read_poses_txt, write_poses_txt
+from vbrl_ros.io.pointcloud2 import returns_mask
 
 
 def read_kitti_bin(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read one ``.bin`` scan: (points (N, 3) float64, intensity (N,) float64), finite xyz rows only."""
+    """Read one ``.bin`` scan: (points (N, 3) float64, intensity (N,) float64), returns only
+    (:func:`~vbrl_ros.io.pointcloud2.returns_mask`: finite, not the no-return origin)."""
     raw = np.fromfile(path, dtype="<f4")
     if raw.size % 4:
         raise ScanSourceError(f"{path}: {raw.size * 4} bytes is not a whole number of 16-byte x,y,z,i points")
     values = raw.reshape(-1, 4).astype(np.float64)
-    values = values[np.isfinite(values[:, :3]).all(axis=1)]
+    values = values[returns_mask(values)]
     return np.ascontiguousarray(values[:, :3]), np.ascontiguousarray(values[:, 3])
 
 

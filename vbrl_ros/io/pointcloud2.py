@@ -225,12 +225,22 @@ def read_structured(msg: Any, fields: Sequence[str] | None = None) -> np.ndarray
     return out
 
 
+def returns_mask(xyz: np.ndarray) -> np.ndarray:
+    """(N,) bool: the rows of ``xyz`` (N, 3+) that are returns — finite, and not the (0, 0, 0)
+    that Ouster and Livox drivers write where a beam got no return. Kept, such placeholders
+    would stand at the sensor in every scan and, merged by odometry into a later keyframe's
+    trail, draw the path behind it; in verification they would pull registrations to zero."""
+    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    # per column: several times faster than row-wise all() on a 120k-point scan
+    return np.isfinite(x) & np.isfinite(y) & np.isfinite(z) & ((x != 0.0) | (y != 0.0) | (z != 0.0))
+
+
 def read_xyz_intensity(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
     """Return (points (N, 3) float64, intensity (N,) float64 or None).
 
-    Rows whose x, y or z is not finite (NaN/inf, as in ``is_dense = false``
-    clouds) are dropped from both. The intensity is the first of the fields
-    ``INTENSITY_FIELD_NAMES`` present with count 1, None when there is none.
+    Rows that are not returns (:func:`returns_mask`: NaN/inf, as in ``is_dense = false``
+    clouds, or the no-return origin) are dropped from both. The intensity is the first of the
+    fields ``INTENSITY_FIELD_NAMES`` present with count 1, None when there is none.
     """
     view, specs = _point_view(msg, None)
     by_name = {spec.name: spec for spec in specs}
@@ -242,11 +252,10 @@ def read_xyz_intensity(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
     intensity = next((by_name[n] for n in INTENSITY_FIELD_NAMES if n in by_name and by_name[n].count == 1), None)
     points = _columns(view, [by_name[axis] for axis in "xyz"])
     values = _columns(view, [intensity])[:, 0] if intensity else None
-    # Per-column isfinite and np.compress: several times faster than row-wise all() and boolean indexing.
-    finite = np.isfinite(points[:, 0]) & np.isfinite(points[:, 1]) & np.isfinite(points[:, 2])
-    if not finite.all():
-        points = np.compress(finite, points, axis=0)
-        values = np.compress(finite, values) if values is not None else None
+    returns = returns_mask(points)
+    if not returns.all():  # np.compress: faster than boolean indexing
+        points = np.compress(returns, points, axis=0)
+        values = np.compress(returns, values) if values is not None else None
     return points, values
 
 
