@@ -4,9 +4,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from vbrl_ros.features.blind_wedges import azimuth_bins, blind_bins
-from vbrl_ros.features.trail import MAX_TRAIL_KEYFRAMES, TRAIL_POINTS, Trail, trail_clouds, with_trail
+from vbrl_ros.features.trail import (
+    CONFIRM_RANGE_M,
+    MAX_TRAIL_KEYFRAMES,
+    TRAIL_POINTS,
+    Trail,
+    confirmed,
+    trail_clouds,
+    with_trail,
+)
 
 
 def pose_at(x: float, y: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:
@@ -40,7 +49,8 @@ def in_world(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
 def test_an_earlier_keyframe_lands_where_odometry_puts_it():
     rng = np.random.default_rng(0)
     world = walls(rng)
-    post = np.array([[3.0, -8.0, z] for z in np.arange(0.0, 2.0, 0.25)])  # only the first keyframe sees it
+    # only the first keyframe sees it; beyond CONFIRM_RANGE_M, where nothing needs confirming
+    post = np.array([[16.0, -8.0, z] for z in np.arange(0.0, 2.0, 0.25)])
     first, second = pose_at(0.0), pose_at(1.5, 0.2, yaw_deg=30.0)
     trail = Trail(3.0)
     trail.cloud(seen_from(np.vstack([world, post]), first), first)
@@ -148,8 +158,9 @@ def test_a_dense_keyframe_is_described_alone_and_a_sparse_one_takes_what_it_lack
     assert len(trail) == 0  # and neither is kept
     sparse_trail = Trail(3.0)
     part = TRAIL_POINTS * 3 // 8
+    shared = walls(rng, part)  # the same wall points from every pose: each confirms the others
     for x in (0.0, 0.5, 1.0, 1.5):
-        sparse_trail.cloud(seen_from(walls(rng, part), pose_at(x)), pose_at(x))
+        sparse_trail.cloud(seen_from(shared, pose_at(x)), pose_at(x))
     sparse = seen_from(walls(rng, 1000), pose_at(2.0))
     # nearest first: two earlier keyframes whole, every second point of the third, then what fits of the fourth
     third = len(range(0, part, 2))
@@ -190,3 +201,39 @@ def test_a_spinning_scan_of_32_beams_is_dense_enough_to_be_described_alone(beams
     described = trail.cloud(second, run.poses[1])
     assert (described is second) == alone
     assert alone or len(second) < len(described) <= TRAIL_POINTS
+
+
+def test_an_earlier_keyframes_flakes_near_the_sensor_are_dropped_its_structure_kept():
+    """Snow returns from new places in every scan: an earlier keyframe's lone points within
+    CONFIRM_RANGE_M are dropped, its points beside another keyframe's kept, and the keyframe's
+    own points and everything farther away kept as they are."""
+    rng = np.random.default_rng(11)
+    structure = walls(rng, 3000) * [0.7, 0.7, 1.0]  # a ring 8.4 m round: within the range
+    far = walls(rng, 500) * [1.5, 1.5, 1.0]  # 18 m round: beyond it
+
+    def flakes(count: int) -> np.ndarray:  # in the air, 2-8 m from the sensor
+        r, a = np.sqrt(rng.uniform(4.0, 64.0, count)), rng.uniform(-np.pi, np.pi, count)
+        return np.column_stack([r * np.cos(a), r * np.sin(a), rng.uniform(0.5, 3.0, count)])
+
+    trail = Trail(3.0)
+    earlier_flakes = flakes(40)  # light snow: ~0.06 flakes per cubic metre a scan
+    trail.cloud(seen_from(np.vstack([structure, far, earlier_flakes]), pose_at(0.0)), pose_at(0.0))
+    own = seen_from(np.vstack([structure, flakes(40)]), pose_at(0.5))
+    placed = cKDTree(in_world(trail.cloud(own, pose_at(0.5)), pose_at(0.5)))
+
+    def kept(points: np.ndarray) -> np.ndarray:
+        return placed.query(points)[0] < 1e-4
+
+    assert kept(in_world(own, pose_at(0.5))).all()  # its own points, flakes too
+    assert kept(earlier_flakes).mean() < 0.2  # a few share a voxel with the keyframe's own flakes
+    assert kept(far).all()  # seen once, but farther than the range
+    assert kept(structure).all()  # what both saw
+
+
+def test_confirmed_keeps_everything_without_earlier_points_near():
+    points = np.array([[1.0, 2.0, 0.5], [30.0, 0.0, 1.0], [0.0, 20.0, 2.0]])
+    assert confirmed(points, np.array([0, 0, 1])).all()
+    assert confirmed(points[:0], np.zeros(0, np.int64)).shape == (0,)
+    lone = confirmed(np.array([[1.0, 2.0, 0.5], [1.2, 2.1, 0.7], [5.0, 5.0, 1.0]]), np.array([0, 1, 1]))
+    assert lone.tolist() == [True, True, False]  # beside the keyframe's own point / alone
+    assert CONFIRM_RANGE_M > 6.0
