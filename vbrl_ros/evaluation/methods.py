@@ -165,7 +165,7 @@ def describe_source(
             views=views if len(offsets) > 1 else None,
             view_offsets=offsets,
             clouds=None if verification_voxel is None else KeyframeClouds(clouds, frames),
-            poses=None if poses is None else np.array(poses),
+            poses=poses,  # a selection (and its turn) of the source's poses: already a copy
             stamps=np.asarray(source.stamps, np.float64)[indices].copy(),
         )
 

@@ -227,8 +227,10 @@ def ground_frame(points: np.ndarray, gravity_rotation: np.ndarray | None = None)
     if fit is not None:
         support = int(_plane_inliers(np.ascontiguousarray(low.T), fit[0], fit[1]).sum())
         first = (_rotation_onto_z(fit[0]), fit[1], _tilt_deg(fit[0]), support)
+    xyz64 = None  # read once, only for a second search
     if first is None or first[3] < MIN_SUPPORT * len(low):  # held steeper than the search reaches?
-        found = [f for f in (first, _steep_fit(points)) if f is not None]
+        xyz64 = np.ascontiguousarray(np.asarray(points, dtype=np.float64)[:, :3])
+        found = [f for f in (first, _steep_fit(xyz64)) if f is not None]
         if not found:
             return _without_ground(base, low)
         first = max(found, key=lambda f: f[3])
@@ -238,7 +240,9 @@ def ground_frame(points: np.ndarray, gravity_rotation: np.ndarray | None = None)
     for _ in range(MAX_REFITS):
         if increment <= REFIT_TILT_DEG:
             break
-        refit = _refit(points, rotation)
+        if xyz64 is None:
+            xyz64 = np.ascontiguousarray(np.asarray(points, dtype=np.float64)[:, :3])
+        refit = _refit(xyz64, rotation)
         if refit is None:
             break
         rotation, height, increment, _ = refit
@@ -255,11 +259,12 @@ def _tilt_deg(normal: np.ndarray) -> float:
     return math.degrees(math.acos(min(1.0, float(normal[2]))))
 
 
-def _refit(points: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, float, float, int] | None:
-    """The ground fitted in the frame ``rotation`` levels the scan to: (the refined rotation, the
-    height, the refinement's tilt in degrees, the plane's inlier count), or None when no plane is
-    found or the refined frame would tilt the scan by more than ``MAX_HELD_TILT_DEG``."""
-    levelled = np.ascontiguousarray(np.asarray(points, dtype=np.float64)[:, :3]) @ rotation.T
+def _refit(xyz: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, float, float, int] | None:
+    """The ground of the scan ``xyz`` (N, 3) float64 fitted in the frame ``rotation`` levels it to:
+    (the refined rotation, the height, the refinement's tilt in degrees, the plane's inlier count),
+    or None when no plane is found or the refined frame would tilt the scan by more than
+    ``MAX_HELD_TILT_DEG``."""
+    levelled = xyz @ rotation.T
     low = lowest_points(levelled, CELL_M, MIN_RANGE_M, MAX_RANGE_M)
     fit = fit_ground(low)
     if fit is None:
@@ -272,7 +277,7 @@ def _refit(points: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, float,
     return refined, height, _tilt_deg(normal), support
 
 
-def _steep_fit(points: np.ndarray) -> tuple[np.ndarray, float, float, int] | None:
+def _steep_fit(xyz: np.ndarray) -> tuple[np.ndarray, float, float, int] | None:
     """The best-supported ground of searches started tilted by ``MAX_TILT_DEG`` towards
     ``STEEP_STARTS`` headings, as :func:`_refit` gives it, or None."""
     best = None
@@ -280,7 +285,7 @@ def _steep_fit(points: np.ndarray) -> tuple[np.ndarray, float, float, int] | Non
     for k in range(STEEP_STARTS):
         heading = 2.0 * math.pi * k / STEEP_STARTS
         up = np.array([math.sin(tilt) * math.cos(heading), math.sin(tilt) * math.sin(heading), math.cos(tilt)])
-        refit = _refit(points, _rotation_onto_z(up))
+        refit = _refit(xyz, _rotation_onto_z(up))
         if refit is not None and (best is None or refit[3] > best[3]):
             best = refit
     return best
