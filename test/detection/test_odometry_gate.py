@@ -6,7 +6,7 @@ import numpy as np
 
 from vbrl_ros.detection.database import KeyframeDatabase
 from vbrl_ros.detection.detector import LoopClosureDetector
-from vbrl_ros.detection.odometry_gate import SLACK_M, path_lengths, too_far_by_odometry
+from vbrl_ros.detection.odometry_gate import SLACK_M, SPARE_FACTOR, kept_with_spares, path_lengths, too_far_by_odometry
 from vbrl_ros.detection.settings import DetectorSettings, SettingsError
 from vbrl_ros.model.builtin import load_default_model
 
@@ -66,10 +66,39 @@ def drive(odometry_drift: float, back_at: tuple[float, float]):
 def test_a_lookalike_odometry_places_hundreds_of_metres_away_is_not_registered():
     # 193 m driven: 5 + 5 + 19 m allowed; the same cloud where odometry says 300 m away
     far = drive(0.1, (300.0, 0.0))
-    assert far.closures == [] and far.rejections == {"odometry": 1}
+    # top 1 and its spares: every keyframe retrieved is ruled out, none registered
+    assert far.closures == [] and far.rejections == {"odometry": SPARE_FACTOR}
     assert [c.match_id for c in drive(0.0, (300.0, 0.0)).closures] == [0]  # the gate off: registered
 
 
 def test_a_true_revisit_after_odometry_drifted_is_still_closed():
     back = drive(0.1, (8.0, 0.0))  # odometry 8 m off after 193 m: a drift of 4 %
     assert [c.match_id for c in back.closures] == [0] and back.rejections == {}
+
+
+def test_spares_keep_top_k_that_odometry_allows_and_count_the_ruled_out_before_them():
+    assert kept_with_spares([False, False, False, False], 3) == 3
+    assert kept_with_spares([True, False, True, False, False, False], 3) == 5
+    assert kept_with_spares([True, True], 3) == 2  # fewer allowed than top_k: all of them
+    assert kept_with_spares([], 3) == 0
+
+
+def revisit_after_a_lookalike(odometry_drift: float):
+    """top_k 1: the query's own cloud was seen first where odometry says 300 m away; the true place,
+    0.5 m from the query, holds the same cloud jittered, so the lookalike ranks first."""
+    model = load_default_model()
+    settings = DetectorSettings(exclude_recent_s=0.0, top_k=1, odometry_drift=odometry_drift, submap_keyframes=0,
+                                sequence_length=1)
+    detector = LoopClosureDetector(model, KeyframeDatabase(model.scorer(), model.identity()), settings)
+    jittered = place(0) + np.random.default_rng(9).normal(0.0, 0.05, (20_000, 3)).astype(np.float32)
+    for k, (cloud, at) in enumerate([(place(0), (300.0, 0.0)), (place(1), (50.0, 0.0)), (jittered, (0.0, 0.0)),
+                                     (place(2), (50.0, 5.0))]):
+        detector.process_keyframe(cloud, float(k), pose(*at))
+    return detector.process_keyframe(place(0), 4.0, pose(0.5, 0.0))
+
+
+def test_a_lookalike_ruled_out_gives_its_place_to_the_true_revisit():
+    back = revisit_after_a_lookalike(0.1)
+    assert [c.match_id for c in back.closures] == [2] and back.rejections == {"odometry": 1}
+    # the gate off: the lookalike is the one candidate, and it registers (the same cloud)
+    assert [c.match_id for c in revisit_after_a_lookalike(0.0).closures] == [0]

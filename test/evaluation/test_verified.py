@@ -17,6 +17,7 @@ from vbrl_ros.evaluation.verified import (
     best_verified,
     node_decision,
     operating_point,
+    plausible_candidates,
     submap_clouds,
     verify_candidates,
 )
@@ -55,6 +56,28 @@ def test_node_reading_takes_the_first_accepted_in_distance_order():
     indices, decided = node_decision(CANDIDATES, VERIFIED, INF, min_fitness=0.2, top_k=1)
     np.testing.assert_array_equal(indices[:, 0], [-1, 5, -1])
     np.testing.assert_array_equal(decided[:, 0], [INF, 0.0, INF])
+
+
+def test_the_verified_candidates_are_the_first_top_k_odometry_allows_as_the_node_retrieves_them():
+    # keyframes 0-3 at the origin, 4-9 far along a straight 1 km drive; queries 10 and 11 back home
+    positions = np.zeros((12, 3))
+    positions[4:10, 0] = np.linspace(200.0, 1000.0, 6)
+    positions[10:, 0] = [1.0, 2.0]
+    poses = np.tile(np.eye(4), (12, 1, 1))
+    poses[:, :3, 3] = positions
+    ranked = np.full((12, 10), -1)
+    ranked[10, :6] = [5, 0, 6, 7, 1, 2]  # lookalikes far away (5, 6, 7) before the true places
+    ranked[11, :4] = [8, 9, 3, -1]
+    rule = DetectorSettings(top_k=2, odometry_drift=0.1)
+    chosen = plausible_candidates(ranked, np.where(ranked >= 0, 1.0, INF), rule, OdometryTrack.of(poses))
+    # query 10: 0 and 1 are the two allowed, with the ruled-out 5, 6 and 7 before 1 (counted, not
+    # registered); query 11: its spares hold only one allowed
+    assert chosen.indices[10].tolist() == [5, 0, 6, 7, 1] and chosen.indices[11].tolist() == [8, 9, 3, -1, -1]
+    assert np.isinf(chosen.distances[11, 3:]).all()
+    for no_gate in (plausible_candidates(ranked, ranked * 1.0, rule, None),
+                    plausible_candidates(ranked, ranked * 1.0, DetectorSettings(top_k=2, odometry_drift=0.0),
+                                         OdometryTrack.of(poses))):
+        assert no_gate.indices.shape == (12, 2) and no_gate.indices[10].tolist() == [5, 0]
 
 
 def test_operating_point_counts_what_was_published():

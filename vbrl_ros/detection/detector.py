@@ -19,7 +19,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from vbrl_ros.detection.database import Candidate, KeyframeDatabase
-from vbrl_ros.detection.odometry_gate import too_far_by_odometry
+from vbrl_ros.detection.odometry_gate import SPARE_FACTOR, kept_with_spares, too_far_by_odometry
 from vbrl_ros.detection.registration import (
     QueryVerifier,
     Verification,
@@ -72,7 +72,9 @@ class Retrieval:
     keyframe_id: int
     stamp: float
     session: str
-    candidates: list[Candidate]  # within the distance threshold, best (lowest distance) first
+    # within the distance threshold, best (lowest distance) first: top_k of them, and with the odometry
+    # gate the ones it ruled out before the top_k-th it allows
+    candidates: list[Candidate]
     candidates_scored: int
     frame: np.ndarray  # 4x4 sensor -> grid frame of the query
     cloud: np.ndarray | None = None  # the query's verification cloud, in its grid frame
@@ -80,6 +82,9 @@ class Retrieval:
     candidate_frames: list[np.ndarray] = field(default_factory=list)
     timings_ms: dict[str, float] = field(default_factory=dict)
 
+
+#: The cloud of a candidate that odometry rules out: it is rejected without being registered.
+NOT_REGISTERED = np.zeros((0, 3), np.float32)
 
 #: A registration that slid along a street or corridor ("degenerate") but overlapped at least this
 #: share of ``min_fitness`` is registered once more with submaps of twice as many neighbours: where a
@@ -166,9 +171,10 @@ class LoopClosureDetector:
         views = self.scorer.compact(self.model.standardize(
             self.featurizer.describe_views(described, self.view_offsets, frame)))
         t1 = time.perf_counter()
+        # with the odometry gate, spares take the place of the candidates it rules out
         found = self.database.query_views(
-            views, self.view_offsets, top_k=cfg.top_k, session=cfg.session, stamp=stamp,
-            exclude_recent_s=cfg.exclude_recent_s, sequence=self.sequence,
+            views, self.view_offsets, top_k=cfg.top_k * (SPARE_FACTOR if cfg.odometry_drift > 0 else 1),
+            session=cfg.session, stamp=stamp, exclude_recent_s=cfg.exclude_recent_s, sequence=self.sequence,
         )
         # sorted by distance: the first beyond the threshold ends the list
         candidates = [c for c in found if c.distance <= self.distance_threshold]
@@ -177,12 +183,14 @@ class LoopClosureDetector:
         keyframe_id = self.database.add(views[0], stamp, cfg.session, pose=pose, cloud=cloud,
                                         frame=frame.matrix)
         candidates = [self._gated(c, len(self.database) - 1) for c in candidates]
+        candidates = candidates[:kept_with_spares([c.too_far_by_odometry for c in candidates], cfg.top_k)]
         t3 = time.perf_counter()
         retrieval = Retrieval(  # rows of older keyframes stay where they were after an add
             keyframe_id=keyframe_id, stamp=stamp, session=cfg.session,
             candidates=candidates, candidates_scored=len(found), frame=frame.matrix,
             cloud=self._verified_cloud(len(self.database) - 1, both_sides=False) if cfg.verify else None,
-            candidate_clouds=[self._verified_cloud(c.index) for c in candidates] if cfg.verify else [],
+            candidate_clouds=[NOT_REGISTERED if c.too_far_by_odometry else self._verified_cloud(c.index)
+                              for c in candidates] if cfg.verify else [],
             candidate_frames=[self.database.frame(c.index) for c in candidates],
         )
         t4 = time.perf_counter()

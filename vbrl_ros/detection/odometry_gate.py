@@ -53,3 +53,20 @@ def too_far_by_odometry(apart_m: float, path_m: float, max_closure_distance: flo
     if odometry_drift <= 0 or not (np.isfinite(apart_m) and np.isfinite(path_m)):
         return False
     return apart_m > max_closure_distance + SLACK_M + odometry_drift * abs(path_m)
+
+
+#: With the gate on, this many times ``top_k`` candidates are retrieved, so that those odometry
+#: rules out leave their place to the next ones rather than an empty verification budget.
+SPARE_FACTOR = 3
+
+
+def kept_with_spares(too_far: list[bool], top_k: int) -> int:
+    """How many of the candidates, best first (``too_far``: each ruled out by odometry), to keep:
+    up to the ``top_k``-th one odometry allows, the ruled-out ones before it included (they are
+    counted as rejected, not registered); all of them when fewer are allowed."""
+    allowed = 0
+    for position, far in enumerate(too_far):
+        allowed += not far
+        if allowed == top_k:
+            return position + 1
+    return len(too_far)

@@ -32,7 +32,7 @@ from vbrl_ros.detection.detector import (
     submap_gap_s,
     to_sensor_frames,
 )
-from vbrl_ros.detection.odometry_gate import path_lengths, too_far_by_odometry
+from vbrl_ros.detection.odometry_gate import SPARE_FACTOR, kept_with_spares, path_lengths, too_far_by_odometry
 from vbrl_ros.detection.registration import QueryVerifier
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.detection.submaps import KeyframeView, merged_cloud, neighbour_steps
@@ -40,7 +40,7 @@ from vbrl_ros.evaluation.metrics import RetrievalMetrics
 from vbrl_ros.features.parallel import bounded_map, default_workers
 
 __all__ = ["Candidates", "KeyframeClouds", "OdometryTrack", "VerifiedCandidates", "verify_candidates", "best_verified",
-           "node_decision", "OperatingPoint", "operating_point", "submap_clouds"]
+           "node_decision", "OperatingPoint", "operating_point", "submap_clouds", "plausible_candidates"]
 
 
 @dataclass(frozen=True)
@@ -194,6 +194,25 @@ def verify_candidates(queries: KeyframeClouds, database: KeyframeClouds | None, 
     finally:
         bar.close()
     return VerifiedCandidates(fitness, rejection, transforms, retried)
+
+
+def plausible_candidates(indices: np.ndarray, distances: np.ndarray, settings: DetectorSettings,
+                         odometry: OdometryTrack | None) -> Candidates:
+    """Per query the candidates the node verifies, from a method's ranking ``indices`` / ``distances``
+    (n, K), best first: its first ``top_k``; with the odometry gate (``odometry`` and a positive
+    ``odometry_drift``), the first ``top_k`` the gate allows among ``SPARE_FACTOR`` times as many,
+    those it rules out before them included, as the detector retrieves them."""
+    top_k = settings.top_k
+    if odometry is None or settings.odometry_drift <= 0:
+        return Candidates(indices[:, :top_k], distances[:, :top_k])
+    pool_i, pool_d = indices[:, :top_k * SPARE_FACTOR], distances[:, :top_k * SPARE_FACTOR]
+    kept = [kept_with_spares([int(j) >= 0 and odometry.too_far(q, int(j), settings) for j in row], top_k)
+            for q, row in enumerate(pool_i)]
+    width = max(kept, default=top_k)
+    out_i, out_d = np.full((len(pool_i), width), -1, np.int64), np.full((len(pool_i), width), np.inf)
+    for q, m in enumerate(kept):
+        out_i[q, :m], out_d[q, :m] = pool_i[q, :m], pool_d[q, :m]
+    return Candidates(out_i, out_d)
 
 
 def best_verified(candidates: Candidates, verified: VerifiedCandidates) -> tuple[np.ndarray, np.ndarray]:

@@ -74,7 +74,8 @@ DESCRIPTIONS: dict[str, str] = {
     "odometry_drift": "share of the path driven between two keyframes of one session (session_id) that "
                       "odometry may have drifted: a candidate odometry places farther from the keyframe than "
                       "max_closure_distance + 5 m + this share of that path is rejected without being "
-                      "registered (a repeated building, a second identical corridor). 0: off; without "
+                      "registered (a repeated building, a second identical corridor), and the next "
+                      "candidates take its place among the top_k verified. 0: off; without "
                       "odometry, and between keyframes of different sessions, it never applies.",
     "save_every": "keyframes between database saves. 0: only at shutdown or on ~/save_database.",
     "weight_prune": "descriptor rows weighing less than this times the largest row weight are neither "

@@ -31,6 +31,7 @@ from vbrl_ros.evaluation.verified import (
     best_verified,
     node_decision,
     operating_point,
+    plausible_candidates,
     submap_clouds,
     verify_candidates,
 )
@@ -131,9 +132,10 @@ def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, databas
     for name, (method, results) in retrieved.items():
         if name not in (FULL_NAME, SCAN_CONTEXT):
             continue  # ablations: retrieval only
-        k = min(rule.top_k, results.k)
-        candidates = Candidates(results.indices[:, :k], results.distances[:, :k])
-        verified = verify_candidates(*clouds, candidates, rule, wider=wider, odometry=odometry_track(queries, database),
+        odometry = odometry_track(queries, database)
+        candidates = plausible_candidates(results.indices, results.distances, rule, odometry)
+        k = candidates.indices.shape[1]  # at most top_k of them the odometry gate allows
+        verified = verify_candidates(*clouds, candidates, rule, wider=wider, odometry=odometry,
                                      workers=args.workers, progress=not args.quiet,
                                      description=f"verifying {name}")
         outputs.checked[name] = (candidates, verified)
