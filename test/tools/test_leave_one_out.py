@@ -55,6 +55,14 @@ def test_every_recording_is_scored_by_a_model_trained_without_it(folder, tmp_pat
     assert rows["one_way"]["vbrl"]["node"]["accepted"] == 0  # nothing to close, nothing published
     assert "one_way" in text and "closures" in text and "Scan Context" in text
     assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"  # the table as a chart, beside it
+    # the same figures as vbrl eval --verify with the model trained without it: one protocol
+    evaluated = tmp_path / "eval.json"
+    assert vbrl("eval", folder / "town_a", "--model", tmp_path / "models" / "without_town_a.npz", "--no-ablations",
+                "--verify", "--json", evaluated, "--quiet") == 0
+    report = json.loads(evaluated.read_text())
+    for method, name in (("vbrl", "VBRL"), ("scan_context", "Scan Context")):
+        assert rows["town_a"][method]["verified_max_f1"] == report["metrics"][f"{name}, verified"]["5"]["max_f1"]
+        assert rows["town_a"][method]["node"] == report["verified"]["at_node_settings"][name]["0.2"]["5"]
 
 
 def test_a_folder_with_fewer_than_two_recordings_is_refused(tmp_path, capsys):

@@ -132,30 +132,34 @@ def evaluate(source, model, rule, progress: bool) -> dict:
     retrieval, verified (swept over fitness) and what the node publishes under ``rule`` (the
     detector's settings)."""
     from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
-    from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod
+    from vbrl_ros.evaluation.methods import TOP_K_RETRIEVED, ScanContextMethod, VBRLMethod
     from vbrl_ros.evaluation.metrics import evaluate_online
     from vbrl_ros.evaluation.retrieval import online_retrieval
     from vbrl_ros.tools.evaluate_verified import odometry_track, verified_clouds, wider_clouds
     from vbrl_ros.evaluation.verified import (
-        Candidates,
         best_verified,
         node_decision,
         operating_point,
+        plausible_candidates,
         verify_candidates,
     )
 
     out = {}
     clouds, wider = verified_clouds(source, source, rule), wider_clouds(source, source, rule)  # once for both methods
+    odometry = odometry_track(source, source)
     for name, method in (("vbrl", VBRLMethod("VBRL", model, prune=0.0001)),
                          ("scan_context", ScanContextMethod(ScanContextConfig()))):
-        results = online_retrieval(len(source), EXCLUDE, 5, method.distances_fn(source, source), progress)
+        results = online_retrieval(len(source), EXCLUDE, TOP_K_RETRIEVED, method.distances_fn(source, source),
+                                   progress)
         m = evaluate_online(source.positions, results.indices, results.distances, RADIUS_M, EXCLUDE)
         row = {"max_f1": m.max_f1, "recall_at_1": m.recall_at_1, "revisits": m.num_revisits}
-        candidates = Candidates(results.indices[:, :rule.top_k], results.distances[:, :rule.top_k])
-        checked = verify_candidates(*clouds, candidates, rule, wider=wider, odometry=odometry_track(source, source),
+        # as the node: the first top_k that the odometry gate allows (vbrl eval --verify selects the same)
+        candidates = plausible_candidates(results.indices, results.distances, rule, odometry)
+        checked = verify_candidates(*clouds, candidates, rule, wider=wider, odometry=odometry,
                                     progress=progress, description=f"verifying {method.name}")
         swept = evaluate_online(source.positions, *best_verified(candidates, checked), RADIUS_M, EXCLUDE)
-        decided, decision = node_decision(candidates, checked, math.inf, rule.min_fitness, rule.top_k)
+        decided, decision = node_decision(candidates, checked, math.inf, rule.min_fitness,
+                                          candidates.indices.shape[1])
         point = operating_point(evaluate_online(source.positions, decided, decision, RADIUS_M, EXCLUDE),
                                 int(np.isfinite(decision).sum()))
         row.update(verified_max_f1=swept.max_f1, node=point.summary())
