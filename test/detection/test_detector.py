@@ -58,9 +58,9 @@ def corridor_scan(rng: np.random.Generator, x: float, reach: float = 5.0) -> np.
     return (near - [x, 0.0, 1.0]).astype(np.float32)
 
 
-def corridor_revisit(**settings):
+def corridor_revisit(at: float = -1.0, **settings):
     """A corridor walked twice with odometry, keyframes 1.5 m apart; the second walk's keyframe at
-    -1 m, verified against the first walk's at -1 m: ``(detector, retrieval of that pair, match id)``."""
+    ``at`` m, verified against the first walk's there: ``(detector, retrieval of that pair, match id)``."""
     rng = np.random.default_rng(3)
     model = load_default_model()
     found = LoopClosureDetector(model, KeyframeDatabase(model.scorer(), model.identity()),
@@ -74,9 +74,9 @@ def corridor_revisit(**settings):
     first_walk = np.arange(-7.0, 21.0, 1.5)
     for i, x in enumerate(first_walk):
         found.retrieve(corridor_scan(rng, x), float(i), pose(x))
-    for i, x in enumerate(np.arange(-7.0, -0.9, 1.5)):
+    for i, x in enumerate(np.arange(-7.0, at + 0.1, 1.5)):
         retrieval = found.retrieve(corridor_scan(rng, x), 1000.0 + i, pose(x))
-    match = int(np.flatnonzero(first_walk == -1.0)[0])
+    match = int(np.flatnonzero(first_walk == at)[0])
     k = [c.keyframe_id for c in retrieval.candidates].index(match)
     only = replace(retrieval, candidates=[retrieval.candidates[k]], candidate_clouds=[retrieval.candidate_clouds[k]],
                    candidate_frames=[retrieval.candidate_frames[k]])
@@ -93,6 +93,16 @@ def test_a_registration_that_slides_along_a_corridor_is_retried_with_wider_subma
     assert [c.match_id for c in result.closures] == [match] and result.rejections == {}
     assert np.linalg.norm(result.closures[0].T_query_match[:3, 3]) < 0.5  # the same place: no slide
     assert "wider_retry" in result.timings_ms and result.degenerate == []
+
+
+def test_the_wider_retry_reaches_the_structure_more_than_6_m_along():
+    """At 2 m the first walk's keyframe has the end wall 9.5 m behind it: only neighbours up to
+    7.5 m away see it, beyond the 6 m of ordinary submaps and of four neighbours, 1.5 m apart."""
+    found, retrieval, match = corridor_revisit(at=2.0)
+    assert verify_candidates(retrieval, found.settings).degenerate == [0]
+    result = found.verified(retrieval, lambda r: verify_candidates(r, found.settings))
+    assert [c.match_id for c in result.closures] == [match]
+    assert np.linalg.norm(result.closures[0].T_query_match[:3, 3]) < 0.5
 
 
 def test_without_submaps_nothing_is_retried():

@@ -13,6 +13,7 @@ from vbrl_ros.detection.detector import LoopClosureDetector, verification_cloud
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.detection.submaps import (
     MAX_NEIGHBOUR_DISTANCE_M,
+    WIDER_NEIGHBOUR_DISTANCE_M,
     KeyframeView,
     can_merge,
     merged_cloud,
@@ -80,6 +81,14 @@ def test_only_a_trusted_neighbour_is_merged(change, merges):
     assert can_merge(centre, other, max_gap_s=15.0) is merges
     merged = merged_cloud(centre, [other], voxel=1.0, max_gap_s=15.0)
     assert (len(merged) > len(centre.cloud)) is merges
+
+
+def test_a_wider_submap_reaches_neighbours_farther_away():
+    centre, other = keyframe(transform(0.0, 0.0, 0.0), 10.0), keyframe(transform(8.0, 0.0, 0.0), 11.0)
+    assert not can_merge(centre, other, max_gap_s=15.0)
+    assert can_merge(centre, other, max_gap_s=15.0, reach_m=WIDER_NEIGHBOUR_DISTANCE_M)
+    wider = merged_cloud(centre, [other], voxel=1.0, max_gap_s=15.0, reach_m=WIDER_NEIGHBOUR_DISTANCE_M)
+    assert len(wider) > len(merged_cloud(centre, [other], voxel=1.0, max_gap_s=15.0)) == len(centre.cloud)
 
 
 def test_a_query_submap_never_shares_a_keyframe_with_its_candidates():

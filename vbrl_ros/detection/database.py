@@ -30,7 +30,7 @@ import numpy as np
 
 from vbrl_ros.detection.database_file import MAX_KEYFRAME_ID, SavedDatabase, read_database, write_database
 from vbrl_ros.detection.odometry_gate import DrivenPath, path_lengths
-from vbrl_ros.detection.submaps import KeyframeView, merged_cloud, neighbour_steps
+from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, KeyframeView, merged_cloud, neighbour_steps
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.keyframe_store import grown
 from vbrl_ros.index.parameters import IndexParameters
@@ -162,13 +162,13 @@ class KeyframeDatabase:
         return self._cloud_points[self._cloud_offsets[i] : self._cloud_offsets[i + 1]].copy()
 
     def submap_cloud(self, index: int, neighbours: int, voxel: float, max_gap_s: float, *,
-                     both_sides: bool = True) -> np.ndarray:
+                     both_sides: bool = True, reach_m: float = MAX_NEIGHBOUR_DISTANCE_M) -> np.ndarray:
         """The keyframe's cloud with up to ``neighbours`` adjacent keyframes' merged in by their poses
-        (:func:`~vbrl_ros.detection.submaps.merged_cloud`), in its grid frame; ``both_sides`` False:
-        only earlier ones."""
+        (:func:`~vbrl_ros.detection.submaps.merged_cloud`, within ``reach_m``), in its grid frame;
+        ``both_sides`` False: only earlier ones."""
         i = self._check_index(index)
         rows = [i + step for step in neighbour_steps(neighbours, both_sides=both_sides) if 0 <= i + step < self._size]
-        return merged_cloud(self._view(i), [self._view(r) for r in rows], voxel, max_gap_s)
+        return merged_cloud(self._view(i), [self._view(r) for r in rows], voxel, max_gap_s, reach_m)
 
     def _view(self, i: int) -> KeyframeView:
         return KeyframeView(self.cloud(i), self._frames[i], self._poses[i], float(self._stamps[i]),

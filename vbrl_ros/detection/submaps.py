@@ -25,6 +25,9 @@ from kiss_icp.voxelization import voxel_down_sample
 #: Neighbours farther than this from the keyframe (m) are not merged: odometry drifts with travel,
 #: and what they see is another place.
 MAX_NEIGHBOUR_DISTANCE_M = 6.0
+#: The wider submaps a registration that slid is retried with (detector.WIDER_RETRY_FITNESS) reach
+#: this far: four times the neighbours of keyframes a couple of metres apart.
+WIDER_NEIGHBOUR_DISTANCE_M = 12.0
 
 
 @dataclass(frozen=True)
@@ -47,25 +50,26 @@ def neighbour_steps(count: int, *, both_sides: bool) -> list[int]:
     return [-(k + 1) for k in range(count)]
 
 
-def can_merge(centre: KeyframeView, other: KeyframeView, max_gap_s: float) -> bool:
+def can_merge(centre: KeyframeView, other: KeyframeView, max_gap_s: float,
+              reach_m: float = MAX_NEIGHBOUR_DISTANCE_M) -> bool:
     """Whether ``other``'s cloud may be merged into ``centre``'s, at most ``max_gap_s`` (exclusive)
-    before or after it (see the module docstring)."""
+    before or after it and ``reach_m`` away (see the module docstring)."""
     if other.session != centre.session or not abs(other.stamp - centre.stamp) < max_gap_s:
         return False
     if not (np.all(np.isfinite(centre.pose)) and np.all(np.isfinite(other.pose))):
         return False
-    return float(np.linalg.norm(other.pose[:3, 3] - centre.pose[:3, 3])) <= MAX_NEIGHBOUR_DISTANCE_M
+    return float(np.linalg.norm(other.pose[:3, 3] - centre.pose[:3, 3])) <= reach_m
 
 
 def merged_cloud(centre: KeyframeView, neighbours: Sequence[KeyframeView], voxel: float,
-                 max_gap_s: float) -> np.ndarray:
-    """``centre``'s cloud with every mergeable neighbour's (:func:`can_merge`), in ``centre``'s grid
-    frame, float32 (M, 3).
+                 max_gap_s: float, reach_m: float = MAX_NEIGHBOUR_DISTANCE_M) -> np.ndarray:
+    """``centre``'s cloud with every mergeable neighbour's (:func:`can_merge` within ``reach_m``), in
+    ``centre``'s grid frame, float32 (M, 3).
 
     Thinned to one point per ``voxel`` on the grid of the centre's *sensor* frame, the grid its
     own cloud was thinned on, with its own points first: they are all kept, and the neighbours
     only fill the voxels it left empty (on another grid the centre would lose its own points)."""
-    usable = [n for n in neighbours if can_merge(centre, n, max_gap_s) and len(n.cloud)]
+    usable = [n for n in neighbours if can_merge(centre, n, max_gap_s, reach_m) and len(n.cloud)]
     if not usable:
         return np.asarray(centre.cloud, np.float32)
     grid_to_sensor = np.linalg.inv(centre.frame)

@@ -35,7 +35,7 @@ from vbrl_ros.detection.detector import (
 from vbrl_ros.detection.odometry_gate import SPARE_FACTOR, kept_with_spares, path_lengths, too_far_by_odometry
 from vbrl_ros.detection.registration import QueryVerifier
 from vbrl_ros.detection.settings import DetectorSettings
-from vbrl_ros.detection.submaps import KeyframeView, merged_cloud, neighbour_steps
+from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, KeyframeView, merged_cloud, neighbour_steps
 from vbrl_ros.evaluation.metrics import RetrievalMetrics
 from vbrl_ros.features.parallel import bounded_map, default_workers
 
@@ -76,9 +76,10 @@ class KeyframeClouds:
 
 
 def submap_clouds(clouds: KeyframeClouds, poses: np.ndarray | None, stamps: np.ndarray,
-                  settings: DetectorSettings, *, both_sides: bool, neighbours: int | None = None) -> KeyframeClouds:
+                  settings: DetectorSettings, *, both_sides: bool, neighbours: int | None = None,
+                  reach_m: float = MAX_NEIGHBOUR_DISTANCE_M) -> KeyframeClouds:
     """Every keyframe's cloud as the node verifies it under ``settings`` (``submap_keyframes``, or
-    ``neighbours`` for a wider retry; :mod:`~vbrl_ros.detection.submaps`): queries see only their
+    ``neighbours`` within ``reach_m`` for a wider retry; :mod:`~vbrl_ros.detection.submaps`): queries see only their
     past (``both_sides`` False), stored keyframes both sides. The source's poses stand for the
     node's odometry; without poses, or with ``submap_keyframes`` 0, the single clouds."""
     if poses is None or settings.submap_keyframes == 0:
@@ -87,7 +88,7 @@ def submap_clouds(clouds: KeyframeClouds, poses: np.ndarray | None, stamps: np.n
     views = [KeyframeView(clouds.clouds[i], clouds.frames[i], poses[i], float(stamps[i])) for i in range(n)]
     steps = neighbour_steps(neighbours or settings.submap_keyframes, both_sides=both_sides)
     merged = [merged_cloud(views[i], [views[i + s] for s in steps if 0 <= i + s < n],
-                           settings.verification_voxel, gap) for i in range(n)]
+                           settings.verification_voxel, gap, reach_m) for i in range(n)]
     return KeyframeClouds(merged, clouds.frames)
 
 

@@ -15,7 +15,9 @@ from typing import Any
 
 import numpy as np
 
+from vbrl_ros.detection.detector import WIDER_RETRY_NEIGHBOURS
 from vbrl_ros.detection.settings import DetectorSettings, SettingsError
+from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, WIDER_NEIGHBOUR_DISTANCE_M
 from vbrl_ros.evaluation.methods import ScanContextMethod, SourceDescriptors
 from vbrl_ros.evaluation.metrics import RetrievalMetrics
 from vbrl_ros.evaluation.retrieval import RetrievalResults
@@ -168,23 +170,26 @@ def odometry_track(queries: SourceDescriptors, database: SourceDescriptors) -> O
 
 
 def verified_clouds(queries: SourceDescriptors, database: SourceDescriptors, rule: DetectorSettings, *,
-                    neighbours: int | None = None) -> tuple[KeyframeClouds, KeyframeClouds]:
+                    neighbours: int | None = None,
+                    reach_m: float = MAX_NEIGHBOUR_DISTANCE_M) -> tuple[KeyframeClouds, KeyframeClouds]:
     """The queries' and the database's clouds as the node verifies them under ``rule``: submaps
     of the queries' past and of the stored keyframes' both sides (the same source for P1), of
-    ``neighbours`` (default: the rule's ``submap_keyframes``)."""
+    ``neighbours`` (default: the rule's ``submap_keyframes``) within ``reach_m``."""
     def submaps(source: SourceDescriptors, both_sides: bool) -> KeyframeClouds:
         return submap_clouds(source.clouds, source.poses, source.stamps, rule, both_sides=both_sides,
-                             neighbours=neighbours)
+                             neighbours=neighbours, reach_m=reach_m)
     return submaps(queries, False), submaps(database, True)
 
 
 def wider_clouds(queries: SourceDescriptors, database: SourceDescriptors,
                  rule: DetectorSettings) -> tuple[KeyframeClouds, KeyframeClouds] | None:
     """The clouds a degenerate registration is retried with, as the node retries it: submaps of
-    twice the rule's neighbours; None without submaps (no poses, or ``submap_keyframes`` 0)."""
+    ``WIDER_RETRY_NEIGHBOURS`` times the rule's neighbours within ``WIDER_NEIGHBOUR_DISTANCE_M``; None
+    without submaps (no poses, or ``submap_keyframes`` 0)."""
     if rule.submap_keyframes == 0 or queries.poses is None or database.poses is None:
         return None
-    return verified_clouds(queries, database, rule, neighbours=2 * rule.submap_keyframes)
+    return verified_clouds(queries, database, rule, neighbours=WIDER_RETRY_NEIGHBOURS * rule.submap_keyframes,
+                           reach_m=WIDER_NEIGHBOUR_DISTANCE_M)
 
 
 def format_points(outputs: VerifiedOutputs, radii: list[float]) -> str:
