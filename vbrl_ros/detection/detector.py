@@ -26,7 +26,7 @@ from vbrl_ros.detection.registration import (
     downsample_for_storage,
 )
 from vbrl_ros.detection.settings import DetectorSettings
-from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, WIDER_NEIGHBOUR_DISTANCE_M
+from vbrl_ros.detection.submaps import WIDER_NEIGHBOUR_DISTANCE_M
 from vbrl_ros.features.trail import Trail
 from vbrl_ros.index.sequence_matching import SequenceHistory
 from vbrl_ros.index.translation_search import view_offsets
@@ -175,9 +175,10 @@ class LoopClosureDetector:
         views = self.scorer.compact(self.model.standardize(
             self.featurizer.describe_views(described, self.view_offsets, frame)))
         t1 = time.perf_counter()
-        # with the odometry gate, spares take the place of the candidates it rules out
+        # with the odometry gate and a pose, spares take the place of the candidates it rules out
+        gated = cfg.odometry_drift > 0 and pose is not None
         found = self.database.query_views(
-            views, self.view_offsets, top_k=cfg.top_k * (SPARE_FACTOR if cfg.odometry_drift > 0 else 1),
+            views, self.view_offsets, top_k=cfg.top_k * (SPARE_FACTOR if gated else 1),
             session=cfg.session, stamp=stamp, exclude_recent_s=cfg.exclude_recent_s, sequence=self.sequence,
         )
         # sorted by distance: the first beyond the threshold ends the list
@@ -221,23 +222,24 @@ class LoopClosureDetector:
             rows = [self.database.index_of(retrieval.candidates[k].keyframe_id) for k in positions]
         except KeyError:
             return None
-        wide = WIDER_RETRY_NEIGHBOURS * cfg.submap_keyframes
         return replace(retrieval, candidates=[retrieval.candidates[k] for k in positions],
-                       cloud=self._verified_cloud(query, both_sides=False, neighbours=wide, wider=True),
-                       candidate_clouds=[self._verified_cloud(row, neighbours=wide, wider=True) for row in rows],
+                       cloud=self._verified_cloud(query, both_sides=False, wider=True),
+                       candidate_clouds=[self._verified_cloud(row, wider=True) for row in rows],
                        candidate_frames=[retrieval.candidate_frames[k] for k in positions], timings_ms={})
 
-    def _verified_cloud(self, index: int, *, both_sides: bool = True, neighbours: int | None = None,
-                        wider: bool = False) -> np.ndarray:
+    def _verified_cloud(self, index: int, *, both_sides: bool = True, wider: bool = False) -> np.ndarray:
         """The cloud a keyframe is verified with: its own, or its submap with odometry (within half
         ``exclude_recent_s``: a query's and its candidate's submaps never share a keyframe) of
-        ``neighbours`` (default ``submap_keyframes``); ``wider``: reaching as far as a wider retry's."""
+        ``submap_keyframes`` neighbours, or ``wider``: a wider retry's (:data:`WIDER_RETRY_FITNESS`)."""
         cfg = self.settings
         if cfg.submap_keyframes == 0:
             return self.database.cloud(index)
-        reach = WIDER_NEIGHBOUR_DISTANCE_M if wider else MAX_NEIGHBOUR_DISTANCE_M
-        return self.database.submap_cloud(index, neighbours or cfg.submap_keyframes, cfg.verification_voxel,
-                                          submap_gap_s(cfg), both_sides=both_sides, reach_m=reach)
+        if wider:
+            return self.database.submap_cloud(index, WIDER_RETRY_NEIGHBOURS * cfg.submap_keyframes,
+                                              cfg.verification_voxel, submap_gap_s(cfg), both_sides=both_sides,
+                                              reach_m=WIDER_NEIGHBOUR_DISTANCE_M)
+        return self.database.submap_cloud(index, cfg.submap_keyframes, cfg.verification_voxel,
+                                          submap_gap_s(cfg), both_sides=both_sides)
 
 
 def verify_candidates(retrieval: Retrieval, settings: DetectorSettings) -> KeyframeResult:

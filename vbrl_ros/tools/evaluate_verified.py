@@ -131,10 +131,10 @@ def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, databas
     outputs = VerifiedOutputs(rule, tuple(sorted(set(args.min_fitness))))
     # merged once, verified for every method
     clouds, wider = verified_clouds(queries, database, rule), wider_clouds(queries, database, rule)
+    odometry = odometry_track(queries, database)
     for name, (method, results) in retrieved.items():
         if name not in (FULL_NAME, SCAN_CONTEXT):
             continue  # ablations: retrieval only
-        odometry = odometry_track(queries, database)
         candidates = plausible_candidates(results.indices, results.distances, rule, odometry)
         k = candidates.indices.shape[1]  # at most top_k of them the odometry gate allows
         verified = verify_candidates(*clouds, candidates, rule, wider=wider, odometry=odometry,
