@@ -88,3 +88,20 @@ def test_bad_verification_options_say_which(tmp_path, capsys):
                                  ("--distance-threshold", "nan", "--distance-threshold")):
         assert vbrl("eval", source, "--verify", option, value) != 0
         assert named in capsys.readouterr().err
+
+
+def test_a_wider_verify_top_k_retrieves_the_spares_the_odometry_gate_draws_on(verified):
+    from vbrl_ros.detection.odometry_gate import SPARE_FACTOR
+    from vbrl_ros.tools import evaluate
+    from vbrl_ros.tools.cli import build_parser
+    from vbrl_ros.training.ablations import FULL_NAME
+
+    _, _, source, _ = verified
+    top_k = 4  # with its spares 12 candidates, more than the node's top_k needs
+    args = build_parser().parse_args([str(a) for a in (
+        "eval", source, "--verify", "--verify-top-k", top_k, "--exclude", EXCLUDE, "--no-ablations",
+        "--no-scan-context", "--quiet", "--workers", "2")])
+    evaluation = evaluate.load(args)
+    results = evaluate.retrieve(args, evaluation, next(m for m in evaluation.methods if m.name == FULL_NAME))
+    spares = top_k * SPARE_FACTOR
+    assert results.k >= spares and (results.indices[:, spares - 1] >= 0).any()  # kept, and filled by the model

@@ -25,34 +25,29 @@ import numpy as np
 from tqdm import tqdm
 
 from vbrl_ros.config import VBRLConfig
+from vbrl_ros.datasets.blocked_wedge import outside_wedge
+from vbrl_ros.datasets.keyframe_selection import keyframe_poses, select_keyframes, source_points
+from vbrl_ros.datasets.mount_tilt import mount_rotation, tilted_points, tilted_poses
 from vbrl_ros.datasets.registry import open_source
+from vbrl_ros.detection.detector import verification_cloud
+from vbrl_ros.evaluation.baselines.scan_context import (
+    ScanContextConfig,
+    ScanContextDatabase,
+    scan_context,
+)
 from vbrl_ros.evaluation.retrieval import DistancesFn
+from vbrl_ros.evaluation.verified import TOP_K_RETRIEVED, KeyframeClouds
 from vbrl_ros.features.featurizer import Featurizer
+from vbrl_ros.features.parallel import bounded_map, default_workers
+from vbrl_ros.features.trail import with_trail
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.index.sequence_matching import DEFAULT_LENGTH, SequenceHistory
 from vbrl_ros.index.translation_search import search_views, view_offsets
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.model.scoring import WeightedL1Scorer
-from vbrl_ros.evaluation.baselines.scan_context import (
-    ScanContextConfig,
-    ScanContextDatabase,
-    scan_context,
-)
-from vbrl_ros.datasets.blocked_wedge import outside_wedge
-from vbrl_ros.datasets.mount_tilt import mount_rotation, tilted_points, tilted_poses
-from vbrl_ros.datasets.keyframe_selection import keyframe_poses, select_keyframes, source_points
-from vbrl_ros.detection.detector import verification_cloud
-from vbrl_ros.evaluation.verified import KeyframeClouds
-from vbrl_ros.features.parallel import bounded_map, default_workers
-from vbrl_ros.features.trail import with_trail
 
-__all__ = ["SourceDescriptors", "describe_source", "VBRLMethod", "ScanContextMethod",
-           "scorer_top_k"]
-
-#: Keyframes a method retrieves per query: the metrics need Recall@5, the verified output the spares
-#: of the node's top 3 that the odometry gate draws on (detection.odometry_gate.SPARE_FACTOR).
-TOP_K_RETRIEVED = 10
+__all__ = ["ScanContextMethod", "SourceDescriptors", "VBRLMethod", "describe_source", "scorer_top_k"]
 
 
 @dataclass
@@ -217,12 +212,13 @@ class VBRLMethod:
     (``exact=False``), or brute force over every template (and every sector
     shift of a polar grid) with ``exact=True``. ``prune`` is the node's
     ``weight_prune``: rows weighing less than that share of the largest row
-    weight are neither stored nor scored.
+    weight are neither stored nor scored. ``top_k``: keyframes retrieved per
+    query, at least the driver's (:func:`~vbrl_ros.evaluation.verified.retrieval_width`).
     """
 
     def __init__(self, name: str, model: VBRLModel, *, exact: bool = False,
-                 prune: float = 0.0, sequence_length: int = DEFAULT_LENGTH) -> None:
-        self.name, self.model, self.exact = name, model, exact
+                 prune: float = 0.0, sequence_length: int = DEFAULT_LENGTH, top_k: int = TOP_K_RETRIEVED) -> None:
+        self.name, self.model, self.exact, self.top_k = name, model, exact, top_k
         self.scorer = model.scorer(prune=prune)
         self.sequence_length = sequence_length
 
@@ -254,10 +250,10 @@ class VBRLMethod:
                 index.add_batch(T[len(index): limit])
             allowed = None if len(index) == limit else np.arange(len(index)) < limit
             if raw_views is None:
-                found = search_views(index, Q[i][None], np.zeros((1, 2)), TOP_K_RETRIEVED, allowed,
+                found = search_views(index, Q[i][None], np.zeros((1, 2)), self.top_k, allowed,
                                      exact=self.exact, rescore=rescore)
             else:  # as the node: the query from every viewpoint
-                found = search_views(index, self.compact(raw_views[i]), offsets, TOP_K_RETRIEVED,
+                found = search_views(index, self.compact(raw_views[i]), offsets, self.top_k,
                                      allowed, exact=self.exact, rescore=rescore)
             out = np.full(len(candidates), np.inf)  # not retrieved: never a match
             out[found.indices] = found.distances

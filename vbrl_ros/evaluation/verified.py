@@ -39,8 +39,19 @@ from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, KeyframeView, m
 from vbrl_ros.evaluation.metrics import RetrievalMetrics
 from vbrl_ros.features.parallel import bounded_map, default_workers
 
-__all__ = ["Candidates", "KeyframeClouds", "OdometryTrack", "VerifiedCandidates", "verify_candidates", "best_verified",
-           "node_decision", "OperatingPoint", "operating_point", "submap_clouds", "plausible_candidates"]
+__all__ = ["TOP_K_RETRIEVED", "Candidates", "KeyframeClouds", "OdometryTrack", "OperatingPoint", "VerifiedCandidates",
+           "best_verified", "node_decision", "operating_point", "plausible_candidates", "retrieval_width",
+           "submap_clouds", "verify_candidates"]
+
+
+def retrieval_width(top_k: int) -> int:
+    """Candidates retrieval keeps per query: the spares the odometry gate draws on when ``top_k`` are
+    verified (:func:`plausible_candidates`), and at least 10, for Recall@5 and the matches dump's lists."""
+    return max(10, top_k * SPARE_FACTOR)
+
+
+#: :func:`retrieval_width` for the node's own ``top_k``.
+TOP_K_RETRIEVED = retrieval_width(DetectorSettings().top_k)
 
 
 @dataclass(frozen=True)
@@ -63,7 +74,7 @@ class VerifiedCandidates:
 
     def accepted_at(self, min_fitness: float) -> np.ndarray:
         """(n, k) bool: converged, constrained, near enough and at least ``min_fitness``."""
-        return (self.rejection == None) & (self.fitness >= min_fitness)  # noqa: E711 (elementwise)
+        return np.equal(self.rejection, None) & (self.fitness >= min_fitness)  # elementwise
 
 
 @dataclass(frozen=True)

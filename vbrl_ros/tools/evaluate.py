@@ -26,9 +26,6 @@ import numpy as np
 
 from vbrl_ros.config import MAX_TRAIL_M
 from vbrl_ros.detection.settings import DetectorSettings
-from vbrl_ros.tools import evaluate_mounting, evaluate_verified
-from vbrl_ros.tools.evaluate_output import format_table, json_safe, write_matches
-from vbrl_ros.tools.evaluate_verified import VerifiedOutputs, verify_outputs
 from vbrl_ros.evaluation.matches_json import matches_to_json
 from vbrl_ros.evaluation.metrics import (
     RetrievalMetrics,
@@ -38,15 +35,18 @@ from vbrl_ros.evaluation.metrics import (
     evaluate_online,
 )
 from vbrl_ros.evaluation.retrieval import RetrievalResults, cross_session_retrieval, online_retrieval
+from vbrl_ros.evaluation.verified import TOP_K_RETRIEVED, retrieval_width
 from vbrl_ros.io.atomic import atomic_write
 from vbrl_ros.model.model_file import VBRLModel, load_model
+from vbrl_ros.tools import evaluate_mounting, evaluate_verified
+from vbrl_ros.tools.evaluate_output import format_table, json_safe, write_matches
+from vbrl_ros.tools.evaluate_verified import VerifiedOutputs, verify_outputs
 from vbrl_ros.tools.options import add_keyframe_arguments, add_source_arguments
 from vbrl_ros.training.ablations import FULL_NAME, discover_ablations
 
 if TYPE_CHECKING:
     from vbrl_ros.evaluation.methods import SourceDescriptors
 
-TOP_K = 10  # Recall@5, and the spares of the node's top 3 that the odometry gate draws on
 DETECTOR_DEFAULTS = DetectorSettings()
 REPORT_RADII = (3.0, 5.0)  # docs/design.md §3: report 3 m and 5 m
 
@@ -162,6 +162,7 @@ class Evaluation:
     alignment: np.ndarray | None
     radii: list[float]
     trail_m: float = 0.0  # metres of keyframes merged into each one before VBRL describes it
+    width: int = TOP_K_RETRIEVED  # candidates retrieved per query: enough for --verify-top-k's spares
 
     def title(self, exclude: int) -> str:
         if self.protocol == "P1":
@@ -220,7 +221,6 @@ def load(args: argparse.Namespace) -> Evaluation:
     """The models, the sources described once each, and the methods to compare."""
     from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
     from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod, describe_source
-
     from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
 
     alignment = load_alignment(args.align) if args.align is not None else None
@@ -233,11 +233,11 @@ def load(args: argparse.Namespace) -> Evaluation:
     notes += evaluate_mounting.notes(args)
     sc_config = ScanContextConfig(max_range=args.sc_max_range, lidar_height=args.sc_lidar_height)
     step = full.translation_search() if args.translation_search is None else args.translation_search
-    options = dict(topic=args.topic, poses=args.poses, keyframe_distance=args.keyframe_distance,
-                   every=args.every, workers=args.workers, progress=not args.quiet,
-                   translation_search=step,
-                   verification_voxel=DETECTOR_DEFAULTS.verification_voxel if args.verify else None,
-                   blocked_azimuth=args.blocked_azimuth, sc_trail=args.sc_trail)
+    options = {"topic": args.topic, "poses": args.poses, "keyframe_distance": args.keyframe_distance,
+               "every": args.every, "workers": args.workers, "progress": not args.quiet,
+               "translation_search": step,
+               "verification_voxel": DETECTOR_DEFAULTS.verification_voxel if args.verify else None,
+               "blocked_azimuth": args.blocked_azimuth, "sc_trail": args.sc_trail}
     queries = describe_source(args.query, config, sc_config, mount_tilt=args.mount_tilt, **options)
     database = queries if args.against is None else describe_source(args.against, config, sc_config,
                                                                      **options)
@@ -246,12 +246,13 @@ def load(args: argparse.Namespace) -> Evaluation:
             raise ValueError(f"{source.name}: every keyframe needs a pose for the ground truth "
                              "(--poses kiss-icp or file:poses.txt); matching uses them only as the node "
                              "uses odometry")
+    width = retrieval_width(args.verify_top_k)
     methods: list[Any] = [VBRLMethod(name, m, exact=args.exact, prune=args.prune,
-                                     sequence_length=args.sequence_length) for name, m in models.items()]
+                                     sequence_length=args.sequence_length, top_k=width) for name, m in models.items()]
     if args.scan_context:
         methods.append(ScanContextMethod(sc_config, args.sc_candidates, args.sc_sequence_length))
     return Evaluation("P1" if args.against is None else "P2", queries, database, models, methods,
-                      notes, alignment, sorted({float(args.radius), *REPORT_RADII}), config.features.trail_m)
+                      notes, alignment, sorted({float(args.radius), *REPORT_RADII}), config.features.trail_m, width)
 
 
 def retrieve(args: argparse.Namespace, evaluation: Evaluation, method: Any) -> RetrievalResults:
@@ -259,8 +260,8 @@ def retrieve(args: argparse.Namespace, evaluation: Evaluation, method: Any) -> R
     queries, database = evaluation.queries, evaluation.database
     fn = method.distances_fn(queries, database)
     if evaluation.protocol == "P1":
-        return online_retrieval(len(queries), args.exclude, TOP_K, fn, progress=not args.quiet)
-    return cross_session_retrieval(len(queries), len(database), TOP_K, fn, progress=not args.quiet)
+        return online_retrieval(len(queries), args.exclude, evaluation.width, fn, progress=not args.quiet)
+    return cross_session_retrieval(len(queries), len(database), evaluation.width, fn, progress=not args.quiet)
 
 
 def score(args: argparse.Namespace, evaluation: Evaluation,
@@ -301,8 +302,8 @@ def exact_agreement(args: argparse.Namespace, evaluation: Evaluation,
     # the reference: brute force over every keyframe and shift, nothing pruned
     reference_name = f"{FULL_NAME}, exact"
     exact = retrieve(args, evaluation, VBRLMethod(reference_name, evaluation.models[FULL_NAME],
-                                                  exact=True, prune=0.0,
-                                                  sequence_length=args.sequence_length))
+                                                  exact=True, prune=0.0, sequence_length=args.sequence_length,
+                                                  top_k=evaluation.width))
     metrics[reference_name] = score(args, evaluation, exact)
     asked = full_results.database_limit > 0
     same = full_results.indices[asked, 0] == exact.indices[asked, 0]

@@ -132,7 +132,7 @@ def evaluate(source, model, rule, progress: bool) -> dict:
     retrieval, verified (swept over fitness) and what the node publishes under ``rule`` (the
     detector's settings)."""
     from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
-    from vbrl_ros.evaluation.methods import TOP_K_RETRIEVED, ScanContextMethod, VBRLMethod
+    from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod
     from vbrl_ros.evaluation.metrics import evaluate_online
     from vbrl_ros.evaluation.retrieval import online_retrieval
     from vbrl_ros.tools.evaluate_verified import odometry_track, verified_clouds, wider_clouds
@@ -141,16 +141,17 @@ def evaluate(source, model, rule, progress: bool) -> dict:
         node_decision,
         operating_point,
         plausible_candidates,
+        retrieval_width,
         verify_candidates,
     )
 
     out = {}
     clouds, wider = verified_clouds(source, source, rule), wider_clouds(source, source, rule)  # once for both methods
     odometry = odometry_track(source, source)
-    for name, method in (("vbrl", VBRLMethod("VBRL", model, prune=0.0001)),
+    width = retrieval_width(rule.top_k)
+    for name, method in (("vbrl", VBRLMethod("VBRL", model, prune=0.0001, top_k=width)),
                          ("scan_context", ScanContextMethod(ScanContextConfig()))):
-        results = online_retrieval(len(source), EXCLUDE, TOP_K_RETRIEVED, method.distances_fn(source, source),
-                                   progress)
+        results = online_retrieval(len(source), EXCLUDE, width, method.distances_fn(source, source), progress)
         m = evaluate_online(source.positions, results.indices, results.distances, RADIUS_M, EXCLUDE)
         row = {"max_f1": m.max_f1, "recall_at_1": m.recall_at_1, "revisits": m.num_revisits}
         # as the node: the first top_k that the odometry gate allows (vbrl eval --verify selects the same)
