@@ -180,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
         agreement = exact_agreement(args, evaluation, metrics, full_results)
     verified = None
     if args.verify:
-        verified = verify_outputs(args, evaluation.queries, evaluation.database, evaluation.models[FULL_NAME],
+        verified = verify_outputs(args, evaluation.queries, evaluation.database,
                                   lambda results: score(args, evaluation, results), metrics, retrieved)
     report(args, evaluation, metrics, agreement, full_results, verified)
     return 0

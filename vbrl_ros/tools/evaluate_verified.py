@@ -10,33 +10,18 @@ from __future__ import annotations
 import argparse
 import math
 from dataclasses import dataclass, field
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from vbrl_ros.detection.detector import WIDER_RETRY_NEIGHBOURS
 from vbrl_ros.detection.settings import DetectorSettings, SettingsError
-from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, WIDER_NEIGHBOUR_DISTANCE_M
 from vbrl_ros.evaluation.methods import ScanContextMethod, SourceDescriptors
 from vbrl_ros.evaluation.metrics import RetrievalMetrics
 from vbrl_ros.evaluation.retrieval import RetrievalResults
-from vbrl_ros.model.model_file import VBRLModel
+from vbrl_ros.evaluation.verified import Candidates, OperatingPoint, VerifiedCandidates
+from vbrl_ros.evaluation.verified_output import Score, VerificationInputs, VerifiedOutput, verified_output
 from vbrl_ros.tools.evaluate_output import cell
 from vbrl_ros.training.ablations import FULL_NAME
-from vbrl_ros.evaluation.verified import (
-    Candidates,
-    KeyframeClouds,
-    OdometryTrack,
-    OperatingPoint,
-    VerifiedCandidates,
-    best_verified,
-    node_decision,
-    operating_point,
-    plausible_candidates,
-    submap_clouds,
-    verify_candidates,
-)
 
 VERIFIED_SUFFIX = ", verified"
 SCAN_CONTEXT = ScanContextMethod.name
@@ -118,85 +103,50 @@ def settings(args: argparse.Namespace, min_fitness: float) -> DetectorSettings:
     return DetectorSettings(**{name: value for name, (_, value) in options.items()})
 
 
-Score = Callable[[RetrievalResults], dict[float, RetrievalMetrics]]
-
-
 def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, database: SourceDescriptors,
-                   model: VBRLModel, score: Score, metrics: dict[str, dict[float, RetrievalMetrics]],
+                   score: Score, metrics: dict[str, dict[float, RetrievalMetrics]],
                    retrieved: dict[str, tuple[Any, RetrievalResults]]) -> VerifiedOutputs:
-    """Verify the full ``model``'s and Scan Context's candidates; adds a ``"<method>, verified"``
+    """Verify the full model's and Scan Context's candidates; adds a ``"<method>, verified"``
     row (swept over fitness) to ``metrics`` for each. ``database`` is ``queries`` for P1;
     ``score``: the protocol's metrics at every radius."""
     rule = settings(args, args.min_fitness[0])
     outputs = VerifiedOutputs(rule, tuple(sorted(set(args.min_fitness))))
-    # merged once, verified for every method
-    clouds, wider = verified_clouds(queries, database, rule), wider_clouds(queries, database, rule)
-    odometry = odometry_track(queries, database)
-    for name, (method, results) in retrieved.items():
+    inputs = VerificationInputs.of(queries, database, rule)  # merged once, verified for every method
+    for name, (_, results) in retrieved.items():
         if name not in (FULL_NAME, SCAN_CONTEXT):
             continue  # ablations: retrieval only
-        candidates = plausible_candidates(results.indices, results.distances, rule, odometry)
-        k = candidates.indices.shape[1]  # at most top_k of them the odometry gate allows
-        verified = verify_candidates(*clouds, candidates, rule, wider=wider, odometry=odometry,
-                                     workers=args.workers, progress=not args.quiet,
-                                     description=f"verifying {name}")
-        outputs.checked[name] = (candidates, verified)
-        indices, distances = best_verified(candidates, verified)
-        metrics[name + VERIFIED_SUFFIX] = score(RetrievalResults(indices, distances, results.database_limit))
-        fallback = candidates.indices[:, 0]  # no verified candidate: retrieval's own top-1
-        rows = np.arange(len(indices))
-        position = np.argmax(candidates.indices == indices, axis=1)
-        fitness = verified.fitness[rows, position]
-        outputs.best[name] = (np.where(indices[:, 0] >= 0, indices[:, 0], fallback),
-                              np.where(indices[:, 0] >= 0, candidates.distances[rows, position],
-                                       candidates.distances[:, 0]),
-                              np.where(indices[:, 0] >= 0, fitness, math.nan))
         # as the node: with verification, no distance threshold unless one is given
         threshold = args.distance_threshold if name == FULL_NAME and args.distance_threshold else math.inf
-        outputs.points[name] = {}
-        for min_fitness in outputs.min_fitness:
-            decided, decision = node_decision(candidates, verified, threshold, min_fitness, k)
-            point = score(RetrievalResults(decided, decision, results.database_limit))
-            accepted = int(np.isfinite(decision).sum())
-            outputs.points[name][min_fitness] = {r: operating_point(m, accepted) for r, m in point.items()}
+        output = verified_output(inputs, results, rule, score, min_fitness=outputs.min_fitness,
+                                 distance_threshold=threshold, workers=args.workers, progress=not args.quiet,
+                                 description=f"verifying {name}")
+        outputs.checked[name] = (output.candidates, output.verified)
+        metrics[name + VERIFIED_SUFFIX] = output.swept
+        outputs.best[name] = best_entries(output)
+        outputs.points[name] = output.points
         outputs.thresholds[name] = threshold
     return outputs
 
 
-def odometry_track(queries: SourceDescriptors, database: SourceDescriptors) -> OdometryTrack | None:
-    """P1's one session as the node's odometry sees it (the source's poses); None for P2, whose two
-    sessions odometry does not relate, and without poses."""
-    return OdometryTrack.of(queries.poses) if database is queries else None
-
-
-def verified_clouds(queries: SourceDescriptors, database: SourceDescriptors, rule: DetectorSettings, *,
-                    neighbours: int | None = None,
-                    reach_m: float = MAX_NEIGHBOUR_DISTANCE_M) -> tuple[KeyframeClouds, KeyframeClouds]:
-    """The queries' and the database's clouds as the node verifies them under ``rule``: submaps
-    of the queries' past and of the stored keyframes' both sides (the same source for P1), of
-    ``neighbours`` (default: the rule's ``submap_keyframes``) within ``reach_m``."""
-    def submaps(source: SourceDescriptors, both_sides: bool) -> KeyframeClouds:
-        return submap_clouds(source.clouds, source.poses, source.stamps, rule, both_sides=both_sides,
-                             neighbours=neighbours, reach_m=reach_m)
-    return submaps(queries, False), submaps(database, True)
-
-
-def wider_clouds(queries: SourceDescriptors, database: SourceDescriptors,
-                 rule: DetectorSettings) -> tuple[KeyframeClouds, KeyframeClouds] | None:
-    """The clouds a degenerate registration is retried with, as the node retries it: submaps of
-    ``WIDER_RETRY_NEIGHBOURS`` times the rule's neighbours within ``WIDER_NEIGHBOUR_DISTANCE_M``; None
-    without submaps (no poses, or ``submap_keyframes`` 0)."""
-    if rule.submap_keyframes == 0 or queries.poses is None or database.poses is None:
-        return None
-    return verified_clouds(queries, database, rule, neighbours=WIDER_RETRY_NEIGHBOURS * rule.submap_keyframes,
-                           reach_m=WIDER_NEIGHBOUR_DISTANCE_M)
+def best_entries(output: VerifiedOutput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per query the best verified candidate's (index, distance, fitness); without one, retrieval's
+    own top-1 and fitness NaN."""
+    candidates, (indices, _) = output.candidates, output.best
+    fallback = candidates.indices[:, 0]
+    rows = np.arange(len(indices))
+    position = np.argmax(candidates.indices == indices, axis=1)
+    fitness = output.verified.fitness[rows, position]
+    found = indices[:, 0] >= 0
+    return (np.where(found, indices[:, 0], fallback),
+            np.where(found, candidates.distances[rows, position], candidates.distances[:, 0]),
+            np.where(found, fitness, math.nan))
 
 
 def format_points(outputs: VerifiedOutputs, radii: list[float]) -> str:
     rule = outputs.settings
     fitness = ", ".join(f"{f:g}" for f in outputs.min_fitness)
-    lines = [f"at the node's settings (top {rule.top_k}, min_fitness {fitness}, "
-             f"max_closure_distance {rule.max_closure_distance:g} m, odometry_drift {rule.odometry_drift:g})"]
+    lines = [(f"at the node's settings (top {rule.top_k}, min_fitness {fitness}, "
+              f"max_closure_distance {rule.max_closure_distance:g} m, odometry_drift {rule.odometry_drift:g})")]
     for r in radii:
         lines.append(f"radius {r:g} m")
         lines.append(f"  {'method':<24s} {'min_fitness':>11s} {'accepted':>8s} {'precision':>9s} {'recall':>7s} "

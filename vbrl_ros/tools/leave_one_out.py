@@ -135,36 +135,25 @@ def evaluate(source, model, rule, progress: bool) -> dict:
     from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod
     from vbrl_ros.evaluation.metrics import evaluate_online
     from vbrl_ros.evaluation.retrieval import online_retrieval
-    from vbrl_ros.tools.evaluate_verified import odometry_track, verified_clouds, wider_clouds
-    from vbrl_ros.evaluation.verified import (
-        best_verified,
-        node_decision,
-        operating_point,
-        plausible_candidates,
-        retrieval_width,
-        verify_candidates,
-    )
+    from vbrl_ros.evaluation.verified import retrieval_width
+    from vbrl_ros.evaluation.verified_output import VerificationInputs, verified_output
+
+    def score(results):
+        return {RADIUS_M: evaluate_online(source.positions, results.indices, results.distances, RADIUS_M, EXCLUDE)}
 
     out = {}
-    clouds, wider = verified_clouds(source, source, rule), wider_clouds(source, source, rule)  # once for both methods
-    odometry = odometry_track(source, source)
+    inputs = VerificationInputs.of(source, source, rule)  # once for both methods
     width = retrieval_width(rule.top_k)
     for name, method in (("vbrl", VBRLMethod("VBRL", model, prune=0.0001, top_k=width)),
                          ("scan_context", ScanContextMethod(ScanContextConfig()))):
         results = online_retrieval(len(source), EXCLUDE, width, method.distances_fn(source, source), progress)
-        m = evaluate_online(source.positions, results.indices, results.distances, RADIUS_M, EXCLUDE)
-        row = {"max_f1": m.max_f1, "recall_at_1": m.recall_at_1, "revisits": m.num_revisits}
-        # as the node: the first top_k that the odometry gate allows (vbrl eval --verify selects the same)
-        candidates = plausible_candidates(results.indices, results.distances, rule, odometry)
-        checked = verify_candidates(*clouds, candidates, rule, wider=wider, odometry=odometry,
-                                    progress=progress, description=f"verifying {method.name}")
-        swept = evaluate_online(source.positions, *best_verified(candidates, checked), RADIUS_M, EXCLUDE)
-        decided, decision = node_decision(candidates, checked, math.inf, rule.min_fitness,
-                                          candidates.indices.shape[1])
-        point = operating_point(evaluate_online(source.positions, decided, decision, RADIUS_M, EXCLUDE),
-                                int(np.isfinite(decision).sum()))
-        row.update(verified_max_f1=swept.max_f1, node=point.summary())
-        out[name] = row
+        m = score(results)[RADIUS_M]
+        # selected, verified and decided as by vbrl eval --verify: the same figures
+        verified = verified_output(inputs, results, rule, score, progress=progress,
+                                   description=f"verifying {method.name}")
+        out[name] = {"max_f1": m.max_f1, "recall_at_1": m.recall_at_1, "revisits": m.num_revisits,
+                     "verified_max_f1": verified.swept[RADIUS_M].max_f1,
+                     "node": verified.points[rule.min_fitness][RADIUS_M].summary()}
     return out
 
 
@@ -173,11 +162,11 @@ def _cell(x: float) -> str:
 
 
 def format_rows(rows: list[dict]) -> str:
-    lines = [f"leave-one-recording-out, P1, R = {RADIUS_M:g} m, E = {EXCLUDE}: retrieval max F1 / Recall@1, "
-             "verified max F1, and the node's defaults (verified precision / recall; a recording "
-             "without revisits: closures published, all false)",
-             f"  {'recording':<26s} {'revisits':>8s}   {'VBRL retrieval':>15s} {'verified':>8s} {'node P / R':>13s}"
-             f"   {'Scan Context':>15s} {'verified':>8s} {'node P / R':>13s}"]
+    lines = [(f"leave-one-recording-out, P1, R = {RADIUS_M:g} m, E = {EXCLUDE}: retrieval max F1 / Recall@1, "
+              "verified max F1, and the node's defaults (verified precision / recall; a recording "
+              "without revisits: closures published, all false)"),
+             (f"  {'recording':<26s} {'revisits':>8s}   {'VBRL retrieval':>15s} {'verified':>8s} {'node P / R':>13s}"
+              f"   {'Scan Context':>15s} {'verified':>8s} {'node P / R':>13s}")]
     for row in rows:
         cells = []
         for name in ("vbrl", "scan_context"):
