@@ -71,6 +71,11 @@ def test_p1_all_methods_json_png_and_matches(trained, tmp_path, monkeypatch):
         for radius in ("3", "5"):
             assert set(METRICS) <= set(report["metrics"][name][radius])
     assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
+    for radius in ("3", "5"):  # every revisit is in one heading class
+        for name in METHODS:
+            split, metrics = report["recall_at_1_by_heading"][radius][name], report["metrics"][name][radius]
+            assert sum(c["revisits"] for c in split.values()) == metrics["num_revisits"] > 0
+            assert sum(c["hits"] for c in split.values()) == round(metrics["recall_at_1"] * metrics["num_revisits"])
     entries = _read(dump)
     assert {"query", "match", "distance"} <= set(entries[0])
     # the dump recomputes the JSON's metrics exactly

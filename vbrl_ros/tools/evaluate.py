@@ -26,6 +26,7 @@ import numpy as np
 
 from vbrl_ros.config import MAX_TRAIL_M
 from vbrl_ros.detection.settings import DetectorSettings
+from vbrl_ros.evaluation.by_heading import HeadingRecall, format_heading_recall, recalls_by_heading
 from vbrl_ros.evaluation.matches_json import matches_to_json
 from vbrl_ros.evaluation.metrics import (
     RetrievalMetrics,
@@ -182,7 +183,11 @@ def run(args: argparse.Namespace) -> int:
     if args.verify:
         verified = verify_outputs(args, evaluation.queries, evaluation.database,
                                   lambda results: score(args, evaluation, results), metrics, retrieved)
-    report(args, evaluation, metrics, agreement, full_results, verified)
+    indices = {name: results.indices for name, (_, results) in retrieved.items()}
+    by_heading = {r: recalls_by_heading(indices, evaluation.queries.poses, evaluation.database.poses, r,
+                                        exclude=args.exclude if evaluation.protocol == "P1" else None,
+                                        alignment=evaluation.alignment) for r in evaluation.radii}
+    report(args, evaluation, metrics, agreement, full_results, verified, by_heading)
     return 0
 
 
@@ -325,8 +330,9 @@ def exact_agreement(args: argparse.Namespace, evaluation: Evaluation,
 
 def report(args: argparse.Namespace, evaluation: Evaluation,
            metrics: dict[str, dict[float, RetrievalMetrics]], agreement: dict[str, Any] | None,
-           full_results: RetrievalResults | None, verified: VerifiedOutputs | None = None) -> None:
-    """Print the table; write the JSON metrics, the PR curves and the matches asked for."""
+           full_results: RetrievalResults | None, verified: VerifiedOutputs | None = None,
+           by_heading: dict[float, dict[str, HeadingRecall] | None] | None = None) -> None:
+    """Print the tables; write the JSON metrics, the PR curves and the matches asked for."""
     from vbrl_ros.evaluation import headroom
 
     queries, database = evaluation.queries, evaluation.database
@@ -335,6 +341,9 @@ def report(args: argparse.Namespace, evaluation: Evaluation,
     title = evaluation.title(args.exclude)
     print(f"{title}: {len(queries)} query keyframes, {len(database)} database keyframes")
     print(format_table(metrics, evaluation.radii))
+    for radius, recalls in (by_heading or {}).items():
+        if recalls is not None:
+            print(format_heading_recall(recalls, radius))
     if agreement is not None:
         print(f"{FULL_NAME} ({agreement['retrieval']}, prune {args.prune:g}): top-1 equals the "
               f"unpruned brute-force top-1 on {agreement['same_top1']} of {agreement['queries']} "
@@ -343,7 +352,7 @@ def report(args: argparse.Namespace, evaluation: Evaluation,
     if verified is not None:
         print(evaluate_verified.format_points(verified, evaluation.radii))
     if args.json is not None:
-        print(f"metrics written to {write_metrics(args, evaluation, metrics, agreement, verified)}")
+        print(f"metrics written to {write_metrics(args, evaluation, metrics, agreement, verified, by_heading)}")
     plot = args.plot or (args.json.with_suffix(".png") if args.json else args.out_dir / "pr.png")
     from vbrl_ros.evaluation.plots import plot_pr_curves  # matplotlib: only when plotting
 
@@ -360,7 +369,8 @@ def report(args: argparse.Namespace, evaluation: Evaluation,
 
 def write_metrics(args: argparse.Namespace, evaluation: Evaluation,
                   metrics: dict[str, dict[float, RetrievalMetrics]],
-                  agreement: dict[str, Any] | None, verified: VerifiedOutputs | None = None) -> Path:
+                  agreement: dict[str, Any] | None, verified: VerifiedOutputs | None = None,
+                  by_heading: dict[float, dict[str, HeadingRecall] | None] | None = None) -> Path:
     from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
 
     protocol, alignment = evaluation.protocol, evaluation.alignment
@@ -381,6 +391,8 @@ def write_metrics(args: argparse.Namespace, evaluation: Evaluation,
         "metrics": {name: {f"{r:g}": m.summary() for r, m in by_r.items()}
                     for name, by_r in metrics.items()},
         "verified": None if verified is None else verified.summary(metrics),
+        "recall_at_1_by_heading": {f"{r:g}": None if recalls is None else {
+            name: recall.summary() for name, recall in recalls.items()} for r, recalls in (by_heading or {}).items()},
     }
     text = json.dumps(json_safe(report), indent=2, allow_nan=False)
     return atomic_write(args.json, lambda h: h.write(text.encode()))
