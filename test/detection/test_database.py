@@ -505,3 +505,37 @@ def test_a_keyframe_against_an_empty_database_still_takes_its_place_in_the_seque
     assert db.query_views(np.zeros((1, SCORER.active_rows.size), np.float32), np.zeros((1, 2)),
                           sequence=history) == []
     assert len(history) == 1
+
+
+def along_x(k: int) -> np.ndarray:
+    pose = np.eye(4)
+    pose[0, 3] = 2.0 * k
+    return pose
+
+
+def test_with_odometry_a_session_is_matched_by_place_and_the_places_survive_a_restart(tmp_path):
+    db = KeyframeDatabase(SCORER, model_id="model-A")
+    full = np.random.default_rng(1).normal(size=(30, D)).astype(np.float32)
+    for i, x in enumerate(full):  # one street along x, a keyframe every 2 m
+        db.add(SCORER.compact(x), stamp=float(i), session="s0", pose=along_x(i))
+    rng = np.random.default_rng(3)
+    # the query comes down a street along y that no keyframe was taken on, to keyframe 10's place
+    queries = [SCORER.compact(rng.normal(size=D).astype(np.float32)) for _ in range(3)]
+    queries.append(SCORER.compact(full[10] + rng.normal(0, 0.3, D).astype(np.float32)))
+    positions = [np.array([20.0, y, 0.0]) for y in (9.0, 6.0, 3.0, 0.0)]
+
+    def run(database, session, with_position):
+        history = SequenceHistory(4)
+        for query, position in zip(queries, positions):
+            found = database.query_views(query[None], np.zeros((1, 2)), top_k=3, session=session, stamp=100.0,
+                                         sequence=history, position=position if with_position else None)
+        return [(c.keyframe_id, c.distance) for c in found]
+
+    by_id = run(db, "s0", with_position=False)
+    by_place = run(db, "s0", with_position=True)
+    assert by_place[0][0] == 10
+    assert by_place[0][1] != pytest.approx(by_id[0][1])  # the earlier terms are the places', not the ids'
+    # another session's keyframes lie in another odometry frame: matched by id
+    assert run(db, "other", with_position=True) == run(db, "other", with_position=False)
+    db.save(tmp_path / "db.npz")
+    assert run(KeyframeDatabase.load(tmp_path / "db.npz", SCORER, "model-A"), "s0", with_position=True) == by_place

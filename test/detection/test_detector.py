@@ -164,3 +164,27 @@ def test_the_detector_describes_keyframes_with_their_trail_as_the_evaluation_doe
     np.testing.assert_allclose(stored, expected, atol=1e-5)
     np.testing.assert_array_equal(stored[0], alone[0])  # the first keyframe has no trail yet
     assert all(np.abs(stored[k] - alone[k]).max() > 1e-3 for k in range(1, count))
+
+
+def test_with_odometry_earlier_keyframes_are_matched_by_place():
+    """The node hands the database its odometry position: the sequence terms are then the places'
+    (index.sequence_matching), so they differ from matching by id once earlier keyframes exist."""
+    builtin = load_default_model()  # without a trail: the keyframes are described alike either way
+    model = replace(builtin, config=replace(builtin.config, features=replace(builtin.config.features, trail_m=0.0)))
+    rng = np.random.default_rng(4)
+    clouds = [rng.uniform(-30, 30, (20_000, 3)).astype(np.float32) for _ in range(7)]
+    for cloud in clouds:
+        cloud[:, 2] = np.abs(cloud[:, 2]) % 5 - 2
+    # four keyframes along x, then three on a street along y towards the fourth, then the fourth again
+    path = [(0, 0), (2, 0), (4, 0), (6, 0), (6, 9), (6, 6), (6, 3), (6, 0)]
+    order = [0, 1, 2, 3, 4, 5, 6, 3]
+    distances = {}
+    for with_odometry in (True, False):
+        found = detector(model, exclude_recent_s=0.0, sequence_length=4, distance_threshold=1e9)
+        for stamp, ((x, y), k) in enumerate(zip(path, order)):
+            pose = np.eye(4)
+            pose[:2, 3] = x, y
+            result = found.process_keyframe(clouds[k], float(stamp), pose=pose if with_odometry else None)
+        distances[with_odometry] = {c.match_id: c.distance for c in result.closures}
+    assert 3 in distances[True] and 3 in distances[False]
+    assert distances[True][3] != distances[False][3]

@@ -4,6 +4,8 @@ import numpy as np
 import pytest
 
 from vbrl_ros.evaluation.methods import QueryStream
+from vbrl_ros.index.keyframe_places import KeyframePlaces
+from vbrl_ros.index.sequence_matching import PLACE_SLACK_M
 
 
 def test_queries_without_a_database_still_take_their_place_in_the_sequence():
@@ -14,3 +16,20 @@ def test_queries_without_a_database_still_take_their_place_in_the_sequence():
     # query 2's candidate 10 driven the same way: query 0, two steps back, matched 8 +- 1
     scored = stream.history.rescore(np.array([10]), np.array([4.0]))[0]
     assert scored == pytest.approx((2 * 4.0 + 4.0 + 1.0) / 4)  # misaligned: (8 + 6 + 4) / 4
+
+
+def test_with_places_the_stream_matches_earlier_queries_by_where_they_were():
+    places = KeyframePlaces(PLACE_SLACK_M)
+    for row in range(50):  # the database's rows along x, 2 m apart
+        places.add(row, np.array([2.0 * row, 0.0, 0.0]))
+    stream = QueryStream(2, places=places)
+    stream.reach(0)  # query 0 stood 3 m off the street, where no keyframe was taken
+    stream.rescorer(np.array([10.0, 3.0, 0.0]))(np.array([4, 6, 30, 40]), np.array([9.0, 9.0, 5.0, 6.0]))
+    stream.reach(1)
+    scored = stream.rescorer(np.array([10.0, 0.0, 0.0]))(np.array([5]), np.array([3.0]))[0]
+    assert scored == pytest.approx((2 * 3.0 + 7.5) / 3)  # the earlier term: the pool's median, 7.5
+    by_id = QueryStream(2)
+    by_id.reach(0)
+    by_id.history.rescore(np.array([4, 6, 30, 40]), np.array([9.0, 9.0, 5.0, 6.0]))
+    by_id.reach(1)
+    assert by_id.history.rescore(np.array([5]), np.array([3.0]))[0] == pytest.approx((2 * 3.0 + 9.0) / 3)

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from vbrl_ros.index.sequence_matching import CURRENT_WEIGHT, SLACK, SequenceHistory
+from vbrl_ros.index.keyframe_places import KeyframePlaces
+from vbrl_ros.index.sequence_matching import CURRENT_WEIGHT, PLACE_SLACK_M, SLACK, SequenceHistory
 
 
 def feed(history: SequenceHistory, pools: list[dict[int, float]]) -> None:
@@ -87,3 +88,71 @@ def test_a_bad_length_is_refused(length):
 def test_ids_and_distances_must_pair_up():
     with pytest.raises(ValueError, match="must be equal"):
         SequenceHistory(3).rescore(np.array([1, 2]), np.array([1.0]))
+
+
+# -- by place: with odometry, earlier keyframes are compared where the query was then ------------
+
+def street(places: KeyframePlaces, ids: range, start: tuple[float, float], step: tuple[float, float]) -> None:
+    """Keyframes ``ids`` of an earlier pass, ``step`` metres apart from ``start``."""
+    for k, keyframe_id in enumerate(ids):
+        places.add(keyframe_id, np.array([start[0] + k * step[0], start[1] + k * step[1], 0.0]))
+
+
+def feed_at(history: SequenceHistory, places: KeyframePlaces, pools: list[tuple[tuple[float, float], dict]]) -> None:
+    """Earlier keyframes' pools, oldest first, each with where the query was then."""
+    for (x, y), pool in pools:
+        history.rescore(np.array(list(pool), np.int64), np.array(list(pool.values()), float),
+                        here=np.array([x, y, 0.0]), places=places)
+
+
+def test_a_turn_onto_a_street_driven_across_is_judged_on_what_can_be_compared():
+    # the earlier pass drove along x (ids 0-9, 2 m apart); the query came down a street along y
+    # that no keyframe was taken on and stands at the crossing, on keyframe 5; keyframe 40 of
+    # another street (ids 35-45) looks almost as close, and the query's last keyframes matched
+    # its id-neighbours moderately (passers-by of no note)
+    places = KeyframePlaces(PLACE_SLACK_M)
+    street(places, range(10), (0.0, 0.0), (2.0, 0.0))
+    street(places, range(35, 46), (90.0, 100.0), (2.0, 0.0))
+    pool = {4: 9.0, 6: 9.0, **dict.fromkeys((37, 38, 39, 41, 42, 43), 6.0)}
+    ids, own = np.array([5, 40]), np.array([3.0, 3.5])
+
+    by_id = SequenceHistory(4)
+    feed(by_id, [pool] * 3)
+    assert np.argmin(by_id.rescore(ids, own)) == 1  # by id the turn loses to the lookalike
+
+    by_place = SequenceHistory(4)
+    feed_at(by_place, places, [((10.0, 9.0), pool), ((10.0, 6.0), pool), ((10.0, 3.0), pool)])
+    scored = by_place.rescore(ids, own, here=np.array([10.0, 0.0, 0.0]), places=places)
+    typical = 6.0  # where no keyframe was ever taken, an earlier term is the pool's median
+    np.testing.assert_allclose(scored, [mean(3.0, [typical] * 3), mean(3.5, [typical] * 3)])
+    assert np.argmin(scored) == 0
+
+
+def test_a_reversed_revisit_on_the_other_lane_is_matched_place_by_place():
+    # the earlier pass along x (ids 0-9, 2 m apart); the query drives back 2 m to the side,
+    # keyframed every 1.5 m: its last keyframes stood beside keyframes 6 and 7
+    places = KeyframePlaces(PLACE_SLACK_M)
+    street(places, range(10), (0.0, 0.0), (2.0, 0.0))
+    pools = [((14.5, 2.0), {7: 2.0, 1: 8.0}), ((13.0, 2.0), {6: 3.0, 7: 2.5, 1: 8.0}),
+             ((11.5, 2.0), {6: 2.0, 2: 8.0})]
+    history = SequenceHistory(4)
+    feed_at(history, places, pools)
+    scored = history.rescore(np.array([5, 1]), np.array([4.0, 4.0]), here=np.array([10.0, 2.0, 0.0]),
+                             places=places)
+    # 5: 1.5 m on is 6 (2.0), 3 m on 6 or 7 (2.5), 4.5 m on 7 (2.0); 1: stored there, not retrieved
+    np.testing.assert_allclose(scored, [mean(4.0, [2.0, 2.5, 2.0]), mean(4.0, [8.0, 8.0, 8.0])])
+
+
+def test_without_a_position_candidates_are_matched_by_id():
+    # another session's keyframes (not among these places) and a query without odometry
+    pools = [{97: 4.0, 700: 9.0}, {98: 4.0, 700: 9.0}, {99: 4.0, 700: 9.0}]
+    places = KeyframePlaces(PLACE_SLACK_M)
+    street(places, range(10), (0.0, 0.0), (2.0, 0.0))
+    ids, own = np.array([100, 500]), np.array([5.0, 4.5])
+    expected = SequenceHistory(4)
+    feed(expected, pools)
+    want = expected.rescore(ids, own)
+    for here in (np.array([1.0, 2.0, 0.0]), None, np.array([np.nan, 0.0, 0.0])):
+        history = SequenceHistory(4)
+        feed_at(history, places, [((0.0, 0.0), pool) for pool in pools])
+        np.testing.assert_allclose(history.rescore(ids, own, here=here, places=places), want)

@@ -32,9 +32,10 @@ from vbrl_ros.detection.database_file import MAX_KEYFRAME_ID, SavedDatabase, rea
 from vbrl_ros.detection.odometry_gate import DrivenPath, path_lengths
 from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, KeyframeView, merged_cloud, neighbour_steps
 from vbrl_ros.index.keyframe_index import KeyframeIndex
+from vbrl_ros.index.keyframe_places import KeyframePlaces
 from vbrl_ros.index.keyframe_store import grown
 from vbrl_ros.index.parameters import IndexParameters
-from vbrl_ros.index.sequence_matching import SequenceHistory
+from vbrl_ros.index.sequence_matching import PLACE_SLACK_M, SequenceHistory
 from vbrl_ros.index.translation_search import search_views
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
@@ -96,6 +97,7 @@ class KeyframeDatabase:
         self._cloud_points = np.empty((0, 3), dtype=np.float32)
         self._paths = np.empty(c, dtype=np.float64)  # metres driven in the session (odometry_gate)
         self._driven = DrivenPath()
+        self._places: dict[int, KeyframePlaces] = {}  # by session: each its own odometry frame
 
     # -- size and accessors ---------------------------------------------------
 
@@ -264,9 +266,15 @@ class KeyframeDatabase:
         self._n_points += len(points)
         self._cloud_offsets[n + 1] = self._n_points
         self._paths[n] = self._driven.step(int(self._session_index[n]), pose_array[:3, 3])
+        self._place(n)
         self._size = n + 1
         self._next_id += 1
         return self._next_id - 1
+
+    def _place(self, row: int) -> None:
+        session = int(self._session_index[row])
+        places = self._places.get(session) or self._places.setdefault(session, KeyframePlaces(PLACE_SLACK_M))
+        places.add(int(self._keyframe_ids[row]), self._poses[row, :3, 3])
 
     def clear(self) -> None:
         """Forget every keyframe and free the memory. Ids keep increasing (never reused)."""
@@ -316,27 +324,30 @@ class KeyframeDatabase:
         exclude_recent_s: float = 0.0,
         exact: bool = False,
         sequence: SequenceHistory | None = None,
+        position: np.ndarray | None = None,
     ) -> list[Candidate]:
         """:meth:`query` for a query described from several viewpoints ``offsets`` (V, 2), the
         first the sensor itself (translation search, :mod:`vbrl_ros.index.translation_search`).
 
         ``sequence``: the stream's earlier keyframes; candidates are then ranked (and their
-        ``distance`` is) the sequence distance of :mod:`vbrl_ros.index.sequence_matching`."""
+        ``distance`` is) the sequence distance of :mod:`vbrl_ros.index.sequence_matching`, by place
+        for keyframes of ``session`` when ``position`` (3,), the query's by odometry, is given."""
         views = np.stack([self.index.check(v) for v in np.asarray(views_compact)])
         if top_k <= 0 or self._size == 0:
             if sequence is not None:  # this keyframe still takes its place in the sequence
                 sequence.rescore(np.zeros(0, np.int64), np.zeros(0))
             return []
         allowed = None
-        if session is not None and stamp is not None:
-            session_id = self._session_lookup.get(str(session))
-            if session_id is not None:
-                recent = (self._session_index[: self._size] == session_id) & (
-                    self._stamps[: self._size] > float(stamp) - float(exclude_recent_s)
-                )
-                allowed = ~recent
+        session_id = None if session is None else self._session_lookup.get(str(session))
+        if session_id is not None and stamp is not None:
+            recent = (self._session_index[: self._size] == session_id) & (
+                self._stamps[: self._size] > float(stamp) - float(exclude_recent_s)
+            )
+            allowed = ~recent
+        places = self._places.get(session_id) if session_id is not None else None
         rescore = None if sequence is None else (
-            lambda rows, distances: sequence.rescore(self._keyframe_ids[rows], distances))
+            lambda rows, distances: sequence.rescore(self._keyframe_ids[rows], distances, here=position,
+                                                     places=places))
         found = search_views(self.index, views, offsets, top_k, allowed, exact=exact, rescore=rescore)
         return [
             Candidate(
@@ -390,4 +401,6 @@ class KeyframeDatabase:
         db._cloud_offsets = c["cloud_offsets"].astype(np.int64, copy=False)
         db._cloud_points = c["cloud_points"].astype(np.float32, copy=False)
         db._paths = path_lengths(db._poses[:, :3, 3], db._session_index, db._driven)  # and it goes on from there
+        for row in range(db._size):
+            db._place(row)
         return db

@@ -180,6 +180,7 @@ class LoopClosureDetector:
         found = self.database.query_views(
             views, self.view_offsets, top_k=cfg.top_k * (SPARE_FACTOR if gated else 1),
             session=cfg.session, stamp=stamp, exclude_recent_s=cfg.exclude_recent_s, sequence=self.sequence,
+            position=None if pose is None else np.asarray(pose, np.float64)[:3, 3],
         )
         # sorted by distance: the first beyond the threshold ends the list
         candidates = [c for c in found if c.distance <= self.distance_threshold]

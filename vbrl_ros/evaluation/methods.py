@@ -41,9 +41,10 @@ from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.features.parallel import bounded_map, default_workers
 from vbrl_ros.features.trail import with_trail
 from vbrl_ros.index.keyframe_index import KeyframeIndex
+from vbrl_ros.index.keyframe_places import KeyframePlaces
 from vbrl_ros.index.parameters import IndexParameters
-from vbrl_ros.index.sequence_matching import DEFAULT_LENGTH, SequenceHistory
-from vbrl_ros.index.translation_search import search_views, view_offsets
+from vbrl_ros.index.sequence_matching import DEFAULT_LENGTH, PLACE_SLACK_M, SequenceHistory
+from vbrl_ros.index.translation_search import Rescore, search_views, view_offsets
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
@@ -238,8 +239,10 @@ class VBRLMethod:
         T = Q if database is queries else self.compact(database.vbrl)
         index = self.new_index()
         raw_views, offsets = queries.views, queries.view_offsets
-        stream = QueryStream(self.sequence_length)
-        rescore = None if self.sequence_length == 1 else stream.history.rescore
+        # in P1 the recording's poses stand in for the node's odometry: earlier keyframes are matched
+        # by place; across sources (P2) the frames differ, as across the node's sessions
+        positions = queries.positions if database is queries else None
+        stream = QueryStream(self.sequence_length, places=None if positions is None else KeyframePlaces(PLACE_SLACK_M))
 
         def fn(i: int, candidates: np.ndarray) -> np.ndarray:
             stream.reach(i)
@@ -247,7 +250,12 @@ class VBRLMethod:
             # limit (P1 grows it with i, P2 keeps it): insert lazily, like online.
             limit = int(candidates[-1]) + 1 if len(candidates) else 0
             if len(index) < limit:
+                if positions is not None:
+                    for row in range(len(index), limit):
+                        stream.places.add(row, positions[row])
                 index.add_batch(T[len(index): limit])
+            rescore = None if self.sequence_length == 1 else stream.rescorer(
+                None if positions is None else positions[i])
             allowed = None if len(index) == limit else np.arange(len(index)) < limit
             if raw_views is None:
                 found = search_views(index, Q[i][None], np.zeros((1, 2)), self.top_k, allowed,
@@ -266,9 +274,14 @@ class QueryStream:
     """The sequence history of a driver's queries, which come in order; rows of one source
     are its keyframes in order, so they serve as the sequence's ids."""
 
-    def __init__(self, length: int) -> None:
+    def __init__(self, length: int, places: KeyframePlaces | None = None) -> None:
         self.history = SequenceHistory(length)
+        self.places = places  # where the database's rows were taken, for matching by place
         self._next = 0
+
+    def rescorer(self, here: np.ndarray | None) -> Rescore:
+        """The current query's rescoring of (rows, distances), taken at ``here`` (None: unknown)."""
+        return lambda rows, distances: self.history.rescore(rows, distances, here=here, places=self.places)
 
     def reach(self, i: int) -> None:
         """Query ``i`` comes next: the queries skipped (no database yet) still take their place."""

@@ -66,8 +66,9 @@ DESCRIPTIONS: dict[str, str] = {
     "translation_search": "metres between the extra viewpoints a query is also described from. 0: off; "
                           "-1: the model's own (1.5 for the built-in model).",
     "sequence_length": "keyframes a candidate is scored over: this one and the ones before it, against the "
-                       "candidate's neighbours driven either way. 1: this keyframe alone (keyframes that "
-                       "do not follow each other along a path).",
+                       "candidate's neighbours driven either way (with odometry, the stored keyframes where "
+                       "the query was then). 1: this keyframe alone (keyframes that do not follow each other "
+                       "along a path).",
     "submap_keyframes": "neighbouring keyframes merged into each verified cloud by odometry poses (the "
                         "query's past, a stored keyframe's both sides): sparse scans then register as small "
                         "local maps. 0: single scans; without odometry, single scans too.",
