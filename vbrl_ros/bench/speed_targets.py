@@ -56,6 +56,7 @@ def benchmark_scan(n_points: int = BENCH_POINTS, seed: int = 0) -> np.ndarray:
 
 
 def measure(repeats: int = 30, config: VBRLConfig | None = None) -> dict[str, Any]:
+    from vbrl_ros.bench import sequence
     from vbrl_ros.bench.solver import time_one_iteration
 
     featurizer = Featurizer(config)
@@ -87,6 +88,7 @@ def measure(repeats: int = 30, config: VBRLConfig | None = None) -> dict[str, An
                            "trail_m": recognition.config.features.trail_m, "spacing_m": TRAIL_SPACING_M,
                            "median_ms": 1e3 * trail_s, "target_ms": 10.0},
         "solver_iteration": {"n": 700, "d": featurizer.dimension, **solver},
+        "sequence_matching": sequence.measure(repeats=repeats * 10),
     }
 
 
@@ -118,7 +120,7 @@ def format_table(results: dict[str, Any]) -> str:
          f"{t['points']:,} points a keyframe, {t['spacing_m']:g} m apart",
          f"{t['median_ms']:.2f} ms", f"<= {t['target_ms']:.0f} ms", "ok" if t["median_ms"] <= t["target_ms"] else "MISSED")
         for t in (results["describe_trail"],)
-    ] + [
+    ] + sequence_rows(results["sequence_matching"]) + [
         ("solver iteration, fast path", f"n={s['n']}, d={s['d']} ({s['fast_path']})",
          f"{1e3 * s['fast_s']:.1f} ms", "", ""),
         ("solver iteration, literal d x d", f"n={s['n']}, d={s['d']}",
@@ -131,6 +133,13 @@ def format_table(results: dict[str, Any]) -> str:
     m = results["machine"]
     footer = f"({m['cpus']} CPUs, Python {m['python']}, numpy {m['numpy']}, BLAS threads: {m['blas_threads']})"
     return "\n".join([line(header), "  ".join("-" * w for w in widths), *map(line, rows), footer])
+
+
+def sequence_rows(q: dict[str, Any]) -> list[tuple[str, ...]]:
+    where = f"pool {q['pool']} over {q['length']} keyframes, {q['keyframes']:,} stored"
+    return [(f"sequence matching {how}", where, f"{q[key + '_ms']:.2f} ms (p95 {q[key + '_p95_ms']:.2f})", "", "")
+            for how, key in (("by id", "by_id"), ("by place (odometry)", "by_place"))] + [
+        ("a keyframe's place stored", f"{q['keyframes']:,} stored", f"{1e3 * q['add_place_ms']:.1f} us", "", "")]
 
 
 def _blas_threads() -> str:
