@@ -124,7 +124,10 @@ def test_check_exact_adds_brute_force_agreement_and_key_headroom(trained, tmp_pa
     assert "top-1 equals the unpruned brute-force top-1" in printed and "key headroom" in printed
 
 
-def test_matching_never_uses_poses(trained, tmp_path, monkeypatch):
+def test_matching_uses_poses_only_as_the_node_uses_odometry(trained, tmp_path, monkeypatch):
+    """Poses are the ground truth; matching uses them only as the node uses odometry: to match the
+    earlier keyframes of a sequence by place (and to merge a trail, which this model has not).
+    Each query alone (``--sequence-length 1``), zeroed poses change nothing; in sequences they do."""
     (summer, _), model = trained
     zeroed = tmp_path / "zeroed"
     zeroed.mkdir()
@@ -132,13 +135,15 @@ def test_matching_never_uses_poses(trained, tmp_path, monkeypatch):
     shutil.copy(summer / "times.txt", zeroed / "times.txt")
     n = len(_positions(summer))
     np.savetxt(zeroed / "poses.txt", np.tile([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0], (n, 1)))
-    dumps = []
-    for k, folder in enumerate((summer, zeroed)):
-        dumps.append(tmp_path / f"m{k}.json")
-        assert vbrl(monkeypatch, "eval", folder, "--model", model, "--dump-matches", dumps[-1],
-                    "--exclude", "20", "--no-ablations", "--no-scan-context", "--quiet",
-                    "--workers", "1", "--out-dir", tmp_path) == 0
-    assert _read(dumps[0]) == _read(dumps[1])
+    dumps = {}
+    for length in ("1", "4"):
+        for folder in (summer, zeroed):
+            dumps[length, folder] = tmp_path / f"m{length}{folder.name}.json"
+            assert vbrl(monkeypatch, "eval", folder, "--model", model, "--dump-matches", dumps[length, folder],
+                        "--exclude", "20", "--no-ablations", "--no-scan-context", "--quiet", "--sequence-length",
+                        length, "--workers", "1", "--out-dir", tmp_path) == 0
+    assert _read(dumps["1", summer]) == _read(dumps["1", zeroed])
+    assert _read(dumps["4", summer]) != _read(dumps["4", zeroed])
 
 
 def test_missing_ablation_is_skipped_with_a_note(trained, tmp_path, monkeypatch, capsys):

@@ -9,8 +9,9 @@ ablations) share the raw descriptors; only their standardisation and row weights
 A method turns (query descriptors, database descriptors) into a
 ``distances_fn(query_index, candidate_indices) -> distances`` for
 :mod:`vbrl_ros.evaluation.retrieval` (lower = more similar). Matching uses the
-descriptors only: poses are carried alongside for the ground truth and never
-reach a method.
+descriptors, and poses only as the node uses odometry: a keyframe's trail, and in P1
+the earlier keyframes of a sequence matched by place; otherwise poses are carried
+alongside for the ground truth.
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ class SourceDescriptors:
     vbrl: np.ndarray  # (n, d) float32 raw (unstandardised) VBRL descriptors
     scan_context: np.ndarray  # (n, rings, sectors) float32
     keyframe_index: np.ndarray  # (n,) scan index of each keyframe in its source
-    positions: np.ndarray | None  # (n, 3) ground truth only; None without poses
+    positions: np.ndarray | None  # (n, 3) the ground truth, and odometry's stand-in in P1; None without poses
     views: np.ndarray | None = None  # (n, V, d) raw descriptors from view_offsets; [:, 0] = vbrl
     view_offsets: np.ndarray | None = None  # (V, 2) metres, the first (0, 0)
     clouds: KeyframeClouds | None = None  # what the node keeps for verification, when asked for

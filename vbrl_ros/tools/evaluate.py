@@ -7,7 +7,8 @@
 
 Each source is read and described once (VBRL raw descriptor + Scan Context);
 every VBRL variant re-uses the raw descriptors with its own standardisation
-and weights. Matching never sees a pose: poses are the ground truth only.
+and weights. Matching uses poses only as the node uses odometry (a keyframe's trail,
+sequences matched by place in P1); otherwise they are the ground truth.
 Indices (JSON dump) are keyframe ordinals in source order; with the default
 keyframe selection (every scan) they are the scan indices, otherwise each
 entry also carries ``query_scan`` / ``match_scan``. Distances: lower = more similar.
