@@ -299,3 +299,28 @@ def test_a_tilted_mount_turns_scans_and_poses_and_the_ground_frame_undoes_it(tra
     assert vbrl(monkeypatch, "eval", summer, "--model", trained[1], "--mount-tilt", "0", "50", "--quiet") == 2
     assert capsys.readouterr().err.strip() == ("vbrl eval: error: --mount-tilt must be (roll, pitch) in "
                                                "[-45, 45] degrees, got [0.0, 50.0]")
+
+
+def test_simulated_drift_reaches_odometry_and_leaves_the_ground_truth(trained, tmp_path, monkeypatch, capsys):
+    """``--simulate-drift``: sequences matched by place read drifting poses, while the revisits,
+    the heading split and the metrics' ground truth read the recorded ones."""
+    (summer, _), model = trained
+    reports, dumps = [], []
+    for drift in ("0", "20"):
+        reports.append(tmp_path / f"d{drift}.json")
+        dumps.append(tmp_path / f"d{drift}.matches.json")
+        assert vbrl(monkeypatch, "eval", summer, "--model", model, "--no-ablations", "--no-scan-context",
+                    "--simulate-drift", drift, "--exclude", "20", "--json", reports[-1], "--dump-matches",
+                    dumps[-1], "--quiet", "--workers", "1", "--out-dir", tmp_path) == 0
+    plain, drifted = _read(reports[0]), _read(reports[1])
+    assert drifted["simulate_drift_deg"] == 20.0 and plain["simulate_drift_deg"] == 0.0
+    assert any("--simulate-drift" in note for note in drifted["notes"])
+    for radius in ("3", "5"):
+        assert drifted["metrics"]["VBRL"][radius]["num_revisits"] == plain["metrics"]["VBRL"][radius]["num_revisits"]
+        assert {k: v["revisits"] for k, v in drifted["recall_at_1_by_heading"][radius]["VBRL"].items()} == \
+               {k: v["revisits"] for k, v in plain["recall_at_1_by_heading"][radius]["VBRL"].items()}
+    assert _read(dumps[0]) != _read(dumps[1])  # the sequences' places moved
+    capsys.readouterr()
+    assert vbrl(monkeypatch, "eval", summer, "--model", model, "--simulate-drift", "-1", "--quiet") == 2
+    assert capsys.readouterr().err.strip() == ("vbrl eval: error: --simulate-drift must be in [0, 45] degrees "
+                                               "per sqrt(100 m), got -1.0")

@@ -29,6 +29,7 @@ from vbrl_ros.config import VBRLConfig
 from vbrl_ros.datasets.blocked_wedge import outside_wedge
 from vbrl_ros.datasets.keyframe_selection import keyframe_poses, select_keyframes, source_points
 from vbrl_ros.datasets.mount_tilt import mount_rotation, tilted_points, tilted_poses
+from vbrl_ros.datasets.odometry_drift import drifted_poses
 from vbrl_ros.datasets.registry import open_source
 from vbrl_ros.detection.detector import verification_cloud
 from vbrl_ros.evaluation.baselines.scan_context import (
@@ -64,11 +65,17 @@ class SourceDescriptors:
     views: np.ndarray | None = None  # (n, V, d) raw descriptors from view_offsets; [:, 0] = vbrl
     view_offsets: np.ndarray | None = None  # (V, 2) metres, the first (0, 0)
     clouds: KeyframeClouds | None = None  # what the node keeps for verification, when asked for
-    poses: np.ndarray | None = None  # (n, 4, 4) T_world_lidar of each keyframe; None without poses
+    poses: np.ndarray | None = None  # (n, 4, 4) T_world_lidar as the node's odometry reads it; None without
+    truth: np.ndarray | None = None  # (n, 4, 4) the recorded poses, for the ground truth (None: ``poses``)
     stamps: np.ndarray | None = None  # (n,) seconds
 
     def __len__(self) -> int:
         return len(self.keyframe_index)
+
+    @property
+    def recorded_poses(self) -> np.ndarray | None:
+        """The poses as recorded, the ground truth, whatever odometry reads."""
+        return self.poses if self.truth is None else self.truth
 
 
 _worker: tuple[Featurizer, ScanContextConfig, np.ndarray, float | None, bool] | None = None
@@ -113,6 +120,7 @@ def describe_source(
     blocked_azimuth: tuple[float, float] | None = None,
     mount_tilt: tuple[float, float] | None = None,
     sc_trail: bool = False,
+    odometry_drift_deg: float = 0.0,
 ) -> SourceDescriptors:
     """Read the keyframes of ``path`` once and compute both descriptors of each (and the VBRL
     views of :func:`~vbrl_ros.index.translation_search.view_offsets` for ``translation_search`` > 0;
@@ -120,7 +128,8 @@ def describe_source(
     ``blocked_azimuth``: a wedge of every scan (sensor frame, degrees) hidden first, as a mast
     would hide it. ``mount_tilt``: (roll, pitch) degrees every scan and pose is turned by first, as
     if the sensor had been held so (:mod:`vbrl_ros.datasets.mount_tilt`). ``sc_trail``: Scan Context
-    reads each keyframe with its trail too, as VBRL does."""
+    reads each keyframe with its trail too, as VBRL does. ``odometry_drift_deg``: what reads
+    odometry reads the poses drifted so (:mod:`vbrl_ros.datasets.odometry_drift`)."""
     workers = default_workers() if workers is None else workers
     offsets = view_offsets(translation_search)
     init = (config.to_dict(), asdict(sc_config), offsets, verification_voxel, sc_trail)
@@ -132,6 +141,9 @@ def describe_source(
             mount = mount_rotation(*mount_tilt)
             scans = (tilted_points(points, mount) for points in scans)
             poses = None if poses is None else tilted_poses(poses, mount)
+        truth = poses
+        if poses is not None and odometry_drift_deg > 0:
+            poses = drifted_poses(poses, odometry_drift_deg)
         if blocked_azimuth is not None:  # the mast turns with the sensor: hidden in its tilted frame
             scans = (points[outside_wedge(points, blocked_azimuth)] for points in scans)
         # None where the scan is described alone: the worker is not sent the same points twice
@@ -164,6 +176,7 @@ def describe_source(
             view_offsets=offsets,
             clouds=None if verification_voxel is None else KeyframeClouds(clouds, frames),
             poses=poses,  # a selection (and its turn) of the source's poses: already a copy
+            truth=None if truth is poses else truth,
             stamps=np.asarray(source.stamps, np.float64)[indices].copy(),
         )
 
@@ -240,9 +253,9 @@ class VBRLMethod:
         T = Q if database is queries else self.compact(database.vbrl)
         index = self.new_index()
         raw_views, offsets = queries.views, queries.view_offsets
-        # in P1 the recording's poses stand in for the node's odometry: earlier keyframes are matched
-        # by place; across sources (P2) the frames differ, as across the node's sessions
-        positions = queries.positions if database is queries else None
+        # in P1 the poses stand in for the node's odometry: earlier keyframes are matched by place;
+        # across sources (P2) the frames differ, as across the node's sessions
+        positions = None if database is not queries or queries.poses is None else queries.poses[:, :3, 3]
         stream = QueryStream(self.sequence_length, places=None if positions is None else KeyframePlaces(PLACE_SLACK_M))
 
         def fn(i: int, candidates: np.ndarray) -> np.ndarray:

@@ -185,9 +185,9 @@ def run(args: argparse.Namespace) -> int:
         verified = verify_outputs(args, evaluation.queries, evaluation.database,
                                   lambda results: score(args, evaluation, results), metrics, retrieved)
     indices = {name: results.indices for name, (_, results) in retrieved.items()}
-    by_heading = {r: recalls_by_heading(indices, evaluation.queries.poses, evaluation.database.poses, r,
-                                        exclude=args.exclude if evaluation.protocol == "P1" else None,
-                                        alignment=evaluation.alignment) for r in evaluation.radii}
+    exclude = args.exclude if evaluation.protocol == "P1" else None
+    by_heading = {r: recalls_by_heading(indices, evaluation.queries.recorded_poses, evaluation.database.recorded_poses,
+                                        r, exclude=exclude, alignment=evaluation.alignment) for r in evaluation.radii}
     report(args, evaluation, metrics, agreement, full_results, verified, by_heading)
     return 0
 
@@ -243,7 +243,8 @@ def load(args: argparse.Namespace) -> Evaluation:
                "every": args.every, "workers": args.workers, "progress": not args.quiet,
                "translation_search": step,
                "verification_voxel": DETECTOR_DEFAULTS.verification_voxel if args.verify else None,
-               "blocked_azimuth": args.blocked_azimuth, "sc_trail": args.sc_trail}
+               "blocked_azimuth": args.blocked_azimuth, "sc_trail": args.sc_trail,
+               "odometry_drift_deg": args.simulate_drift}
     queries = describe_source(args.query, config, sc_config, mount_tilt=args.mount_tilt, **options)
     database = queries if args.against is None else describe_source(args.against, config, sc_config,
                                                                      **options)

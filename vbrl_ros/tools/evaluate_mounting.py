@@ -1,8 +1,9 @@
-"""``vbrl eval``'s mounting options: recorded scans as a sensor mounted another way would give them.
+"""``vbrl eval``'s mounting options: a recording as another mounting or odometry would give it.
 
 ``--blocked-azimuth`` hides a wedge of every scan, as a mast or an operator would;
 ``--mount-tilt`` turns the query session's scans and poses as if the sensor had been held
-tilted (:mod:`vbrl_ros.datasets.mount_tilt`).
+tilted (:mod:`vbrl_ros.datasets.mount_tilt`); ``--simulate-drift`` gives what reads
+odometry drifting poses (:mod:`vbrl_ros.datasets.odometry_drift`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from typing import Any
 
 from vbrl_ros.datasets.blocked_wedge import checked_wedge
 from vbrl_ros.datasets.mount_tilt import MAX_MOUNT_TILT_DEG, checked_tilt
+from vbrl_ros.datasets.odometry_drift import SCALE_ERROR, checked_drift
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,6 +27,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"{MAX_MOUNT_TILT_DEG:g}]; positive roll lifts the left side, positive pitch "
                              "tips the front down, as vbrl simulate --tilt), for both methods: what a sensor "
                              "held that way would get here (P2: the database session keeps its mount)")
+    parser.add_argument("--simulate-drift", type=float, default=0.0, metavar="DEG",
+                        help="what reads odometry (trail, sequences matched by place, submaps, odometry gate) "
+                             "reads the poses as drifting odometry would give them: each step turned by a "
+                             "random heading error of DEG degrees per sqrt(100 m) driven and stretched by "
+                             f"{100 * SCALE_ERROR:g} %%; the ground truth reads them as recorded (default 0)")
 
 
 def check_arguments(args: argparse.Namespace) -> None:
@@ -33,6 +40,7 @@ def check_arguments(args: argparse.Namespace) -> None:
         args.blocked_azimuth = checked_wedge(args.blocked_azimuth, "--blocked-azimuth")
     if args.mount_tilt is not None:
         args.mount_tilt = checked_tilt(args.mount_tilt, "--mount-tilt")
+    args.simulate_drift = checked_drift(args.simulate_drift, "--simulate-drift")
 
 
 def notes(args: argparse.Namespace) -> list[str]:
@@ -44,10 +52,14 @@ def notes(args: argparse.Namespace) -> list[str]:
     if args.mount_tilt is not None:
         lines.append("the query scans turned as a sensor held at roll {:g}, pitch {:g} degrees "
                      "(--mount-tilt)".format(*args.mount_tilt))
+    if args.simulate_drift > 0:
+        lines.append(f"odometry read as drifting {args.simulate_drift:g} degrees per sqrt(100 m) "
+                     "(--simulate-drift)")
     return lines
 
 
 def summary(args: argparse.Namespace) -> dict[str, Any]:
     """The options for the JSON report (None when not used)."""
     return {"blocked_azimuth": None if args.blocked_azimuth is None else list(args.blocked_azimuth),
-            "mount_tilt": None if args.mount_tilt is None else list(args.mount_tilt)}
+            "mount_tilt": None if args.mount_tilt is None else list(args.mount_tilt),
+            "simulate_drift_deg": args.simulate_drift}
