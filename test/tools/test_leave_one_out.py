@@ -73,3 +73,22 @@ def test_a_folder_with_fewer_than_two_recordings_is_refused(tmp_path, capsys):
 def test_a_bad_submap_setting_is_refused_before_any_work(folder, capsys):
     assert vbrl("loo", folder, "--submap-keyframes", "-1") == 2
     assert "--submap-keyframes: 'submap_keyframes' must be an integer in [0, 10]" in capsys.readouterr().err
+
+
+def test_drifting_odometry_reaches_every_recording_as_in_vbrl_eval(folder, tmp_path, capsys):
+    out = tmp_path / "loo.json"
+    assert vbrl("loo", folder, "--out-dir", tmp_path / "models", "--json", out, "--no-simulated-towns",
+                "--simulate-drift", "20", "--quiet") == 0
+    assert "(--simulate-drift)" in capsys.readouterr().out
+    rows = {row["recording"]: row for row in json.loads(out.read_text())}
+    evaluated = tmp_path / "eval.json"
+    assert vbrl("eval", folder / "town_a", "--model", tmp_path / "models" / "without_town_a.npz", "--no-ablations",
+                "--verify", "--simulate-drift", "20", "--json", evaluated, "--quiet") == 0
+    report = json.loads(evaluated.read_text())
+    assert rows["town_a"]["vbrl"]["max_f1"] == report["metrics"]["VBRL"]["5"]["max_f1"]
+    assert rows["town_a"]["vbrl"]["node"] == report["verified"]["at_node_settings"]["VBRL"]["0.2"]["5"]
+
+
+def test_a_bad_drift_is_refused_before_any_work(folder, capsys):
+    assert vbrl("loo", folder, "--simulate-drift", "-2") == 2
+    assert "--simulate-drift must be in [0, 45]" in capsys.readouterr().err

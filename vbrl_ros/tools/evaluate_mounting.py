@@ -27,6 +27,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"{MAX_MOUNT_TILT_DEG:g}]; positive roll lifts the left side, positive pitch "
                              "tips the front down, as vbrl simulate --tilt), for both methods: what a sensor "
                              "held that way would get here (P2: the database session keeps its mount)")
+    add_drift_argument(parser)
+
+
+def add_drift_argument(parser: argparse.ArgumentParser) -> None:
+    """``--simulate-drift``, shared by ``vbrl eval`` and ``vbrl loo``."""
     parser.add_argument("--simulate-drift", type=float, default=0.0, metavar="DEG",
                         help="what reads odometry (trail, sequences matched by place, submaps, odometry gate) "
                              "reads the poses as drifting odometry would give them: each step turned by a "

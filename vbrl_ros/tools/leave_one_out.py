@@ -17,7 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from vbrl_ros.datasets.odometry_drift import checked_drift
 from vbrl_ros.io.atomic import atomic_write
+from vbrl_ros.tools.evaluate_mounting import add_drift_argument
 from vbrl_ros.tools.evaluate_output import json_safe
 
 RADIUS_M = 5.0
@@ -49,6 +51,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--submap-keyframes", type=int, default=None, metavar="N",
                         help="the node's submap_keyframes for verification (default: the node's, 2; "
                              "0: single scans)")
+    add_drift_argument(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
 
@@ -83,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
     from vbrl_ros.training.presets import RECOGNITION_TRANSLATION_SEARCH_M, recognition_config
 
     rule = DetectorSettings() if args.submap_keyframes is None else checked_rule(args.submap_keyframes)
+    drift = checked_drift(args.simulate_drift, "--simulate-drift")
     recordings = recordings_in(args.folder)
     progress = not args.quiet
     config = recognition_config()
@@ -90,7 +94,8 @@ def run(args: argparse.Namespace) -> int:
     # each recording is described once: its first view is what training reads
     voxel = DetectorSettings().verification_voxel
     sources = [describe_source(path, config, ScanContextConfig(), progress=progress,
-                               translation_search=RECOGNITION_TRANSLATION_SEARCH_M, verification_voxel=voxel)
+                               translation_search=RECOGNITION_TRANSLATION_SEARCH_M, verification_voxel=voxel,
+                               odometry_drift_deg=drift)
                for path in recordings]
     for path, source in zip(recordings, sources):
         if source.positions is None or not np.isfinite(source.positions).all():
@@ -105,6 +110,8 @@ def run(args: argparse.Namespace) -> int:
         path = model.save(args.out_dir / f"without_{held.name}.npz")
         print(f"[{k + 1}/{len(recordings)}] {held.name}: model trained without it -> {path}")
         rows.append({"recording": held.name, **evaluate(sources[k], model, rule, progress)})
+    if drift > 0:
+        print(f"odometry read as drifting {drift:g} degrees per sqrt(100 m) (--simulate-drift)")
     print(format_rows(rows))
     if args.json is not None:
         text = json.dumps(json_safe(rows), indent=1, allow_nan=False)
