@@ -87,10 +87,13 @@ class SequenceHistory:
             here, positions = np.asarray(here, np.float64).reshape(3), places.positions(ids)
         if self.length == 1:
             return distances
-        scored = self._sequence_distances(ids, distances)
-        if positions is not None:
-            by_place = self._place_distances(positions, distances, here, places)
-            scored = np.where(np.isnan(by_place), scored, by_place)
+        if positions is None:
+            scored = self._sequence_distances(ids, distances)
+        else:  # by id only where a candidate has no position (another session, no pose)
+            scored = self._place_distances(positions, distances, here, places)
+            unplaced = np.isnan(scored)
+            if unplaced.any():
+                scored[unplaced] = self._sequence_distances(ids[unplaced], distances[unplaced])
         self._pools.appendleft(_pool(ids, distances, here, positions))
         return scored
 
@@ -98,9 +101,10 @@ class SequenceHistory:
                          places: KeyframePlaces) -> np.ndarray:
         """Sequence distances by place: the earlier keyframe ``i-k`` against the candidates of its
         pool near candidate ``j``'s position moved as the query moved since (``p_j + p_(i-k) - p_i``),
-        whichever way and along whichever street the earlier pass drove there. Such a place no
-        stored keyframe is near counts as the current distance (nothing to compare); NaN where
-        the candidate has no position."""
+        whichever way and along whichever street the earlier pass drove there. Such a place a
+        stored keyframe is near but none of the pool counts as the pool's farthest distance, one
+        no stored keyframe is near as its median (nothing to compare); NaN where the candidate has
+        no position."""
         located = np.isfinite(positions).all(axis=1)
         total = CURRENT_WEIGHT * distances
         for step in range(1, self.length):
