@@ -273,7 +273,9 @@ class KeyframeDatabase:
 
     def _place(self, row: int) -> None:
         session = int(self._session_index[row])
-        places = self._places.get(session) or self._places.setdefault(session, KeyframePlaces(PLACE_SLACK_M))
+        places = self._places.get(session)
+        if places is None:
+            places = self._places[session] = KeyframePlaces(PLACE_SLACK_M)
         places.add(int(self._keyframe_ids[row]), self._poses[row, :3, 3])
 
     def clear(self) -> None:

@@ -61,7 +61,7 @@ class SourceDescriptors:
     vbrl: np.ndarray  # (n, d) float32 raw (unstandardised) VBRL descriptors
     scan_context: np.ndarray  # (n, rings, sectors) float32
     keyframe_index: np.ndarray  # (n,) scan index of each keyframe in its source
-    positions: np.ndarray | None  # (n, 3) the ground truth, and odometry's stand-in in P1; None without poses
+    positions: np.ndarray | None  # (n, 3) ground truth only; None without poses
     views: np.ndarray | None = None  # (n, V, d) raw descriptors from view_offsets; [:, 0] = vbrl
     view_offsets: np.ndarray | None = None  # (V, 2) metres, the first (0, 0)
     clouds: KeyframeClouds | None = None  # what the node keeps for verification, when asked for

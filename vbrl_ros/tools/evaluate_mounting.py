@@ -58,9 +58,13 @@ def notes(args: argparse.Namespace) -> list[str]:
         lines.append("the query scans turned as a sensor held at roll {:g}, pitch {:g} degrees "
                      "(--mount-tilt)".format(*args.mount_tilt))
     if args.simulate_drift > 0:
-        lines.append(f"odometry read as drifting {args.simulate_drift:g} degrees per sqrt(100 m) "
-                     "(--simulate-drift)")
+        lines.append(drift_note(args.simulate_drift))
     return lines
+
+
+def drift_note(degrees: float) -> str:
+    """The line ``vbrl eval`` and ``vbrl loo`` print for ``--simulate-drift``."""
+    return f"odometry read as drifting {degrees:g} degrees per sqrt(100 m) (--simulate-drift)"
 
 
 def summary(args: argparse.Namespace) -> dict[str, Any]:

@@ -19,7 +19,7 @@ import numpy as np
 
 from vbrl_ros.datasets.odometry_drift import checked_drift
 from vbrl_ros.io.atomic import atomic_write
-from vbrl_ros.tools.evaluate_mounting import add_drift_argument
+from vbrl_ros.tools.evaluate_mounting import add_drift_argument, drift_note
 from vbrl_ros.tools.evaluate_output import json_safe
 
 RADIUS_M = 5.0
@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"[{k + 1}/{len(recordings)}] {held.name}: model trained without it -> {path}")
         rows.append({"recording": held.name, **evaluate(sources[k], model, rule, progress)})
     if drift > 0:
-        print(f"odometry read as drifting {drift:g} degrees per sqrt(100 m) (--simulate-drift)")
+        print(drift_note(drift))
     print(format_rows(rows))
     if args.json is not None:
         text = json.dumps(json_safe(rows), indent=1, allow_nan=False)
