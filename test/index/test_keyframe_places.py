@@ -69,3 +69,21 @@ def test_answers_agree_with_a_kd_tree_as_the_grid_grows():
             want = cKDTree(walk[: n + 1]).query(points, distance_upper_bound=2.0)[0] <= 2.0
             np.testing.assert_array_equal(places.any_within(points, 2.0), want)
     np.testing.assert_array_equal(places.positions(np.arange(3000)), walk)
+
+
+def test_all_at_once_answers_as_one_at_a_time():
+    rng = np.random.default_rng(1)
+    positions = rng.uniform(0.0, 60.0, (500, 3))
+    positions[::7] = np.nan  # keyframes without a pose
+    ids = np.arange(500) * 3 + 10
+    one_by_one = KeyframePlaces(2.5)
+    for keyframe_id, position in zip(ids, positions):
+        one_by_one.add(keyframe_id, position)
+    at_once = KeyframePlaces.of(2.5, ids, positions)
+    points = rng.uniform(0.0, 60.0, (400, 3))
+    np.testing.assert_array_equal(at_once.any_within(points, 2.5), one_by_one.any_within(points, 2.5))
+    np.testing.assert_array_equal(at_once.positions(ids), one_by_one.positions(ids))
+    at_once.add(ids[-1] + 1, np.array([1.0, 1.0, 1.0]))  # and it goes on growing
+    assert at_once.any_within(np.array([[1.0, 1.0, 1.5]]), 2.5).all()
+    with pytest.raises(ValueError, match="increasing ids"):
+        KeyframePlaces.of(2.5, np.array([3, 3]), np.zeros((2, 3)))

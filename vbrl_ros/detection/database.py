@@ -403,6 +403,7 @@ class KeyframeDatabase:
         db._cloud_offsets = c["cloud_offsets"].astype(np.int64, copy=False)
         db._cloud_points = c["cloud_points"].astype(np.float32, copy=False)
         db._paths = path_lengths(db._poses[:, :3, 3], db._session_index, db._driven)  # and it goes on from there
-        for row in range(db._size):
-            db._place(row)
+        for session in np.unique(db._session_index):
+            rows = np.flatnonzero(db._session_index == session)
+            db._places[int(session)] = KeyframePlaces.of(PLACE_SLACK_M, db._keyframe_ids[rows], db._poses[rows, :3, 3])
         return db

@@ -40,6 +40,17 @@ def _insert(row: int, positions: np.ndarray, cell_m: float, used: np.ndarray, ke
 
 
 @njit(cache=True, nogil=True)
+def _insert_rows(stop: int, positions: np.ndarray, cell_m: float, used: np.ndarray, keys: np.ndarray,
+                 heads: np.ndarray, chain: np.ndarray) -> int:
+    """:func:`_insert` every located row below ``stop``; returns the cells made."""
+    cells = 0
+    for row in range(stop):
+        if np.isfinite(positions[row, 0]) and np.isfinite(positions[row, 1]) and np.isfinite(positions[row, 2]):
+            cells += _insert(row, positions, cell_m, used, keys, heads, chain)
+    return cells
+
+
+@njit(cache=True, nogil=True)
 def _any_within(points: np.ndarray, radius: float, positions: np.ndarray, cell_m: float,
                 used: np.ndarray, keys: np.ndarray, heads: np.ndarray, chain: np.ndarray) -> np.ndarray:
     out = np.zeros(len(points), np.bool_)
@@ -77,6 +88,22 @@ class KeyframePlaces:
         self._chain = np.empty(64, np.int64)  # the next keyframe of the same cell
         self._table(64)
 
+    @classmethod
+    def of(cls, cell_m: float, ids: np.ndarray, positions: np.ndarray) -> KeyframePlaces:
+        """Keyframes ``ids`` (increasing) at ``positions`` (n, 3; NaN rows: unknown), all at once,
+        as a loaded database has them."""
+        places = cls(cell_m)
+        ids = np.asarray(ids, np.int64)
+        positions = np.asarray(positions, np.float64).reshape(-1, 3)
+        if len(ids) != len(positions) or (np.diff(ids) <= 0).any():
+            raise ValueError(f"{len(ids)} increasing ids are needed for {len(positions)} positions")
+        capacity = max(64, len(ids))
+        places._ids, places._chain = np.resize(ids, capacity), np.full(capacity, _EMPTY, np.int64)
+        places._positions = np.resize(positions, (capacity, 3))
+        places._size = len(ids)
+        places._rehash(max(64, 1 << (2 * len(ids)).bit_length()))  # at most half full
+        return places
+
     def _table(self, slots: int) -> None:
         self._used = np.zeros(slots, np.bool_)
         self._keys = np.zeros((slots, 2), np.int64)
@@ -106,10 +133,8 @@ class KeyframePlaces:
 
     def _rehash(self, slots: int) -> None:
         self._table(slots)
-        for row in range(self._size):
-            if np.isfinite(self._positions[row]).all():
-                self._cells += _insert(row, self._positions, self.cell_m, self._used, self._keys, self._heads,
-                                       self._chain)
+        self._cells = _insert_rows(self._size, self._positions, self.cell_m, self._used, self._keys, self._heads,
+                                   self._chain)
 
     def clear(self) -> None:
         self.__init__(self.cell_m)
