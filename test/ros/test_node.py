@@ -185,6 +185,34 @@ def test_a_failed_final_save_is_one_line_and_exit_1(tmp_path):
     assert f"[vbrl_node] database not saved: [Errno 17] File exists: '{folder}'" in output
 
 
+def test_a_session_id_the_database_already_has_is_said_once_at_start(tmp_path):
+    """One session is one odometry frame: reusing one after odometry restarted would compare
+    positions across two frames, so the node says so; a new session (the default -1) says nothing."""
+    database = tmp_path / "keyframes.npz"
+    large_database(database, keyframes=3)
+    warning = "session_id 0 already has keyframes in the database"
+    outputs = {}
+    with ros_context() as context:
+        env = isolated_ros_env(context.get_domain_id())
+        probe = rclpy.create_node("probe", context=context)
+        collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
+        for session in ("0", "-1"):
+            started = time.time()
+            node = subprocess.Popen(node_command(f"database_path:={database}", f"session_id:={session}",
+                                                 "save_every:=0", "diagnostics_period:=0.2"),
+                                    env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            try:
+                assert collector.spin_until(lambda: collector.count("/diagnostics") and stamp_seconds(
+                    collector.messages["/diagnostics"][-1].header.stamp) > started, 60), "node did not come up"
+            finally:
+                node.send_signal(signal.SIGTERM)
+                outputs[session], _ = node.communicate(timeout=60)
+            assert node.returncode == 0, outputs[session]
+        probe.destroy_node()
+    assert outputs["0"].count(warning) == 1, outputs["0"]
+    assert "already has keyframes" not in outputs["-1"], outputs["-1"]
+
+
 def scan(stamp: float, seed: int) -> PointCloud2:
     rng = np.random.default_rng(seed)
     points = np.concatenate([rng.uniform(-30, 30, (20000, 2)), rng.uniform(-2, 4, (20000, 1)),

@@ -95,6 +95,12 @@ class VbrlNode(Node):
         self.model = load_model(s.model_path) if s.model_path else load_default_model()
         self.database = self._open_database()
         session = s.session_id if s.session_id >= 0 else self.database.next_session()
+        if s.session_id >= 0 and str(session) in self.database.sessions:
+            # one session is one odometry frame: the gate and matching by place compare its positions
+            self.get_logger().warning(
+                f"session_id {session} already has keyframes in the database: this run's odometry is taken "
+                f"to be in their frame (odometry_drift, sequences matched by place); after odometry "
+                f"restarts, give a new session_id or -1")
         self.detector = LoopClosureDetector(self.model, self.database,
                                             replace(s.detector, session=str(session)))
         self.session = session

@@ -41,7 +41,8 @@ DESCRIPTIONS: dict[str, str] = {
     "database_path": "keyframe database file (.npz): loaded at start if it exists, saved every save_every "
                      "keyframes and at shutdown; the start checks that it can be written. Empty: keyframes "
                      "are not kept across restarts.",
-    "session_id": "session number of this run's keyframes. -1: one more than the largest in the database.",
+    "session_id": "session number of this run's keyframes: one odometry frame (a restart of odometry is a new "
+                  "session). -1: one more than the largest in the database.",
     "keyframe_distance": "metres of odometry travel between keyframes (with odom_topic).",
     "keyframe_interval": "seconds between keyframes (without odometry).",
     "level_from_odometry": "level each scan by odometry's roll and pitch instead of by its own ground; the "
