@@ -47,3 +47,20 @@ def package_modules() -> dict[str, Path]:
 @pytest.fixture(scope="session")
 def ros_packages() -> tuple[str, ...]:
     return ROS_PACKAGES
+
+
+@pytest.fixture
+def expected_yaws(monkeypatch: pytest.MonkeyPatch) -> list:
+    """The ``expected_yaw`` each verification in this test was told, in order: the real
+    :meth:`QueryVerifier.verify` runs, its argument noted."""
+    from vbrl_ros.detection.registration import QueryVerifier
+
+    told: list = []
+    register = QueryVerifier.verify
+
+    def listening(self, match, **options):
+        told.append(options.get("expected_yaw"))
+        return register(self, match, **options)
+
+    monkeypatch.setattr(QueryVerifier, "verify", listening)
+    return told

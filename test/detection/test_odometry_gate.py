@@ -1,12 +1,20 @@
 """Same-session candidates odometry places too far away are rejected before registration."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
 from vbrl_ros.detection.database import KeyframeDatabase
 from vbrl_ros.detection.detector import LoopClosureDetector
-from vbrl_ros.detection.odometry_gate import SLACK_M, SPARE_FACTOR, kept_with_spares, path_lengths, too_far_by_odometry
+from vbrl_ros.detection.odometry_gate import (
+    SLACK_M,
+    SPARE_FACTOR,
+    kept_with_spares,
+    odometry_heading,
+    path_lengths,
+    too_far_by_odometry,
+)
 from vbrl_ros.detection.settings import DetectorSettings, SettingsError
 from vbrl_ros.model.builtin import load_default_model
 
@@ -102,3 +110,62 @@ def test_a_lookalike_ruled_out_gives_its_place_to_the_true_revisit():
     assert [c.match_id for c in back.closures] == [2] and back.rejections == {"odometry": 1}
     # the gate off: the lookalike is the one candidate, and it registers (the same cloud)
     assert [c.match_id for c in revisit_after_a_lookalike(0.0).closures] == [0]
+
+
+def turned(yaw_deg: float, x: float = 0.0, y: float = 0.0, roll_deg: float = 0.0) -> np.ndarray:
+    a, r = np.deg2rad(yaw_deg), np.deg2rad(roll_deg)
+    Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    Rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
+    T = np.eye(4)
+    T[:3, :3], T[:2, 3] = Rz @ Rx, (x, y)
+    return T
+
+
+def test_odometry_s_heading_is_the_yaw_between_the_levelled_frames():
+    query, match = turned(100.0, 3.0, 1.0), turned(30.0)
+    assert math.isclose(math.degrees(odometry_heading(query, match, np.eye(4), np.eye(4))), -70.0, abs_tol=1e-9)
+    # each sensor tipped by 10 degrees of roll on its mount: its levelled frame takes the roll out and
+    # lifts it to the ground's height, and the heading between the levelled frames is the same
+    tipped_query, tipped_match = query @ turned(0.0, roll_deg=10.0), match @ turned(0.0, roll_deg=10.0)
+    level = turned(0.0, roll_deg=10.0)
+    level[2, 3] = 1.5
+    heading = odometry_heading(tipped_query, tipped_match, level, level)
+    assert math.isclose(math.degrees(heading), -70.0, abs_tol=1e-6)
+    assert math.isnan(odometry_heading(np.full((4, 4), np.nan), match, np.eye(4), np.eye(4)))
+
+
+def revisit_turned(odometry_drift: float, *, another_session: bool = False, verified: bool = False):
+    """A place, two others, then the first place again turned by 90 degrees where odometry says it
+    is (``another_session``: as a keyframe of another session); its candidates as retrieved, or
+    ``verified``: the keyframe's result."""
+    model = load_default_model()
+    settings = DetectorSettings(exclude_recent_s=0.0, top_k=1, odometry_drift=odometry_drift, submap_keyframes=0)
+    detector = LoopClosureDetector(model, KeyframeDatabase(model.scorer(), model.identity()), settings)
+    for k, (seed, at) in enumerate([(0, turned(0.0)), (1, turned(0.0, 50.0)), (2, turned(0.0, 100.0))]):
+        detector.process_keyframe(place(seed), float(k), at)
+    if another_session:
+        detector.settings = replace(settings, session="another")
+    quarter = turned(90.0)
+    cloud = place(0) @ quarter[:3, :3]  # the same world, seen from a sensor turned by 90 degrees
+    if verified:
+        return detector.process_keyframe(cloud.astype(np.float32), 3.0, quarter)
+    return detector.retrieve(cloud.astype(np.float32), 3.0, quarter).candidates
+
+
+def test_a_same_session_candidate_carries_the_heading_odometry_expects():
+    candidates = revisit_turned(0.1)
+    assert [c.index for c in candidates] == [0]
+    assert math.isclose(math.degrees(candidates[0].odometry_yaw), -90.0, abs_tol=3.0)  # the frames level each
+    # no opinion with the gate off, or from another session's odometry frame
+    assert math.isnan(revisit_turned(0.0)[0].odometry_yaw)
+    assert math.isnan(revisit_turned(0.1, another_session=True)[0].odometry_yaw)
+
+
+def test_the_verification_is_told_the_heading_odometry_expects(expected_yaws):
+    told = expected_yaws
+    result = revisit_turned(0.1, verified=True)
+    assert [c.match_id for c in result.closures] == [0]
+    assert len(told) == 1 and math.isclose(math.degrees(told[0]), -90.0, abs_tol=3.0)
+    told.clear()
+    revisit_turned(0.0, verified=True)  # the gate off: every keyframe's candidate registered, none expected
+    assert len(told) == 3 and all(math.isnan(yaw) for yaw in told)

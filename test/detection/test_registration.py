@@ -401,3 +401,20 @@ def test_a_courtyard_turned_by_90_degrees_is_told_apart_by_what_both_sensors_saw
         right += translation < 0.5 and rotation < 3.0 and result.rejection(0.2) is None
     assert best_peak_wrong >= 6, best_peak_wrong
     assert right >= 7, right
+
+
+def test_odometry_s_heading_turns_the_courtyard_the_right_way_even_20_degrees_off():
+    # Odometry knows roughly which way the match faced: of the heading search's overlays only those
+    # within EXPECTED_YAW_TOLERANCE_DEG of that are compared, so the courtyard turned by a quarter
+    # or a half is out of the running; told it was turned by a half, the verifier registers that.
+    for seed in range(8):
+        query, match, truth = courtyard_scans(seed)
+        yaw = float(np.arctan2(truth[1, 0], truth[0, 0]))
+        verifier = QueryVerifier(query, max_closure_distance=5.0)
+        for error_deg in (-20.0, 20.0):
+            result = verifier.verify(match, expected_yaw=yaw + np.deg2rad(error_deg))
+            translation, rotation = pose_error(result.T_query_match, truth)
+            assert translation < 0.5 and rotation < 3.0 and result.rejection(0.2) is None, (seed, error_deg)
+        assert pose_error(verifier.verify(match, expected_yaw=yaw + np.pi).T_query_match, truth)[1] > 170.0
+        unknown = verifier.verify(match, expected_yaw=float("nan"))
+        np.testing.assert_allclose(unknown.T_query_match, verifier.verify(match).T_query_match)

@@ -156,6 +156,28 @@ def test_evaluation_rejects_what_the_sources_odometry_places_too_far_away_as_the
     assert OdometryTrack.of(None) is None
 
 
+def test_evaluation_tells_the_verification_the_heading_odometry_expects_as_the_node_does(drive, expected_yaws):
+    from vbrl_ros.detection.odometry_gate import odometry_heading
+
+    clouds, poses = drive
+    gaps = np.linalg.norm(poses[:, None, :2, 3] - poses[None, :, :2, 3], axis=2)
+    q = next(q for q in range(len(poses)) if (gaps[q, : max(q - 5, 0)] < 3.0).any())
+    revisit = int(np.argmin(gaps[q, : q - 5]))
+    candidates = Candidates(np.full((len(poses), 1), -1), np.full((len(poses), 1), INF))
+    candidates.indices[q] = revisit
+    told = expected_yaws
+    track = OdometryTrack.of(poses)
+    checked = verify_candidates(clouds, None, candidates, DetectorSettings(), odometry=track, workers=1, progress=False)
+    expected = odometry_heading(poses[q], poses[revisit], clouds.frames[q], clouds.frames[revisit])
+    assert told == [expected] and math.isfinite(expected)
+    assert checked.accepted_at(0.2)[q, 0]
+    # the gate off, or no odometry (P2): no expectation, as at the node
+    for odometry, settings in ((track, DetectorSettings(odometry_drift=0.0)), (None, DetectorSettings())):
+        told.clear()
+        verify_candidates(clouds, None, candidates, settings, odometry=odometry, workers=1, progress=False)
+        assert len(told) == 1 and math.isnan(told[0])
+
+
 def test_evaluation_verifies_the_submaps_the_node_would():
     """Each keyframe sees a patch of its own; a query's submap holds its past, a stored keyframe's
     both sides, and nothing merges without poses, with 0 neighbours or beyond the time gap."""

@@ -63,6 +63,8 @@ class Candidate:
     offset: tuple[float, float] = (0.0, 0.0)  # the keyframe's position in the query's grid frame
     # odometry places it too far from the query to be one place (detection.odometry_gate)
     too_far_by_odometry: bool = False
+    # T_query_match's yaw between the levelled frames as odometry gives it (odometry_heading); NaN: unknown
+    odometry_yaw: float = math.nan
 
 
 class KeyframeDatabase:

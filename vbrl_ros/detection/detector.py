@@ -19,7 +19,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from vbrl_ros.detection.database import Candidate, KeyframeDatabase
-from vbrl_ros.detection.odometry_gate import SPARE_FACTOR, kept_with_spares, too_far_by_odometry
+from vbrl_ros.detection.odometry_gate import SPARE_FACTOR, kept_with_spares, odometry_heading, too_far_by_odometry
 from vbrl_ros.detection.registration import (
     QueryVerifier,
     Verification,
@@ -205,10 +205,15 @@ class LoopClosureDetector:
         return retrieval
 
     def _gated(self, candidate: Candidate, query_row: int) -> Candidate:
-        """``candidate`` marked when odometry places it too far from the query (odometry_gate)."""
+        """``candidate`` marked when odometry places it too far from the query, else given the yaw
+        odometry expects its registration to find (odometry_gate), when the gate is on."""
         apart, path = self.database.odometry_apart(query_row, candidate.index)
         if too_far_by_odometry(apart, path, self.settings.max_closure_distance, self.settings.odometry_drift):
             return replace(candidate, too_far_by_odometry=True)
+        if self.settings.odometry_drift > 0 and math.isfinite(apart):  # one session, both poses known
+            db = self.database
+            return replace(candidate, odometry_yaw=odometry_heading(
+                db.pose(query_row), db.pose(candidate.index), db.frame(query_row), db.frame(candidate.index)))
         return candidate
 
     def widened(self, retrieval: Retrieval, positions: list[int]) -> Retrieval | None:
@@ -267,7 +272,7 @@ def verify_candidates(retrieval: Retrieval, settings: DetectorSettings) -> Keyfr
         if settings.verify:
             # no initial guess: the verification searches every heading itself, as the
             # recogniser's yaw is often a symmetric place's other heading
-            check = verifier.verify(retrieval.candidate_clouds[k])
+            check = verifier.verify(retrieval.candidate_clouds[k], expected_yaw=candidate.odometry_yaw)
             T, covariance = to_sensor_frames(check, retrieval.frame, retrieval.candidate_frames[k])
             reason = closure_rejection(check, T, settings)
             if reason is not None:

@@ -7,6 +7,12 @@ hundreds of metres. A candidate whose keyframe odometry places farther from the 
 ``max_closure_distance`` plus :data:`SLACK_M` plus ``odometry_drift`` times the path driven
 between the two cannot be the same place and is rejected before it is registered. Across
 sessions odometry says nothing, and neither it does where a pose is unknown.
+
+Odometry also says which way the candidate's keyframe faced. Its heading drifts by a few
+degrees over a loop, while a symmetric place — a square courtyard, a crossing of two alike
+streets — overlays almost as well turned by a quarter: :func:`odometry_heading` is the
+registration's expected yaw, and the verification's heading search keeps to overlays within
+:data:`~vbrl_ros.detection.registration.EXPECTED_YAW_TOLERANCE_DEG` of it.
 """
 
 from __future__ import annotations
@@ -70,3 +76,14 @@ def kept_with_spares(too_far: list[bool], top_k: int) -> int:
         if allowed == top_k:
             return position + 1
     return len(too_far)
+
+
+def odometry_heading(query_pose: np.ndarray, match_pose: np.ndarray, query_frame: np.ndarray,
+                     match_frame: np.ndarray) -> float:
+    """The yaw (radians) of ``T_query_match`` between two keyframes' levelled frames (sensor -> grid,
+    where verification registers them) as odometry gives it: ``query_pose`` and ``match_pose`` are
+    T_world_lidar of one session. NaN where a pose is unknown."""
+    if not (np.all(np.isfinite(query_pose)) and np.all(np.isfinite(match_pose))):
+        return float("nan")
+    T = query_frame @ np.linalg.solve(query_pose, match_pose) @ np.linalg.inv(match_frame)
+    return float(np.arctan2(T[1, 0], T[0, 0]))

@@ -48,6 +48,7 @@ Conventions
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -60,8 +61,8 @@ from vbrl_ros.detection.overlap import agreement_of, covisible_overlap, is_const
 from vbrl_ros.detection.pose_covariance import inlier_statistics
 from vbrl_ros.detection.prepared_cloud import MAX_POINT_RANGE_M, PreparedCloud, thinned
 
-__all__ = ["COARSE_TO_FINE", "MAX_POINT_RANGE_M", "SEARCH_MARGIN_M", "QueryVerifier", "Verification",
-           "downsample_for_storage", "verify_loop", "yaw_guess"]
+__all__ = ["COARSE_TO_FINE", "EXPECTED_YAW_TOLERANCE_DEG", "MAX_POINT_RANGE_M", "SEARCH_MARGIN_M", "QueryVerifier",
+           "Verification", "downsample_for_storage", "verify_loop", "yaw_guess"]
 
 # Map voxel size of each stage as a multiple of ``voxel_size`` (coarse to fine), from an initial guess.
 COARSE_TO_FINE = (8.0, 2.0, 1.0)
@@ -86,6 +87,10 @@ HEADING_HYPOTHESES = 4
 # refused right headings in a square courtyard; 0 cost a forward-looking sensor a few closures
 # in rain).
 HYPOTHESIS_MARGIN = 0.02
+#: With an expected yaw (odometry's, for a candidate of the same session), only overlays within
+#: this of it are compared: half the quarter turn that a symmetric place is confused by, and far
+#: more than odometry's heading drifts over a loop. With none that close, all are compared.
+EXPECTED_YAW_TOLERANCE_DEG = 45.0
 #: The heading search looks this far beyond the farthest closure the caller accepts: its peak is
 #: a cell off at worst, and ICP may still pull a registration back inside.
 SEARCH_MARGIN_M = 2.0
@@ -93,6 +98,7 @@ SEARCH_MARGIN_M = 2.0
 _MIN_POINTS = 20
 _CONVERGENCE_CRITERION = 1e-4  # KISS-ICP default: stop when |dx| < 1e-4
 _CHECK_ITERATIONS = 3  # of the final stage again, to see that it has settled
+_TOLERANCE_RAD = math.radians(EXPECTED_YAW_TOLERANCE_DEG)
 
 
 @dataclass(frozen=True)
@@ -196,9 +202,12 @@ class QueryVerifier:
                                   convergence_criterion=_CONVERGENCE_CRITERION, max_num_threads=int(max_threads))
 
     def verify(self, match: np.ndarray | PreparedCloud, *, initial_guess: np.ndarray | None = None,
-               timings: dict[str, float] | None = None) -> Verification:
+               expected_yaw: float | None = None, timings: dict[str, float] | None = None) -> Verification:
         """Register the query onto ``match`` ((M, 3) points, or a :class:`PreparedCloud` at this
-        verifier's voxel that a caller keeps for a keyframe it verifies often)."""
+        verifier's voxel that a caller keeps for a keyframe it verifies often). ``expected_yaw``
+        (radians; None or NaN: unknown): roughly the yaw of ``T_query_match``, as odometry knows it
+        (:func:`~vbrl_ros.detection.odometry_gate.odometry_heading`); the heading search then
+        keeps to overlays within :data:`EXPECTED_YAW_TOLERANCE_DEG` of it."""
         laps = _Laps(timings)
         guess = None if initial_guess is None else np.asarray(initial_guess, dtype=np.float64)
         if guess is not None and (guess.shape != (4, 4) or not np.all(np.isfinite(guess))):
@@ -215,6 +224,8 @@ class QueryVerifier:
         if guess is not None:
             return self._register(match, guess, searched=False, laps=laps)
         overlays = query.heading_search(self.search_radius).alignments(match.structure, HEADING_HYPOTHESES)
+        if expected_yaw is not None and math.isfinite(expected_yaw):
+            overlays = [o for o in overlays if _yaw_apart(o.T_query_match, expected_yaw) <= _TOLERANCE_RAD] or overlays
         laps.lap("heading search")
         overlay = overlays[0]
         if len(overlays) > 1:
@@ -316,6 +327,11 @@ def _align(
         kernel=kernel,
     )
     return np.asarray(T, dtype=np.float64)
+
+
+def _yaw_apart(T: np.ndarray, yaw: float) -> float:
+    """|yaw of ``T`` - ``yaw``| in radians, wrapped to [0, pi]."""
+    return abs((math.atan2(T[1, 0], T[0, 0]) - yaw + math.pi) % (2.0 * math.pi) - math.pi)
 
 
 def _angle(T: np.ndarray) -> float:

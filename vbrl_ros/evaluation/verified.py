@@ -32,7 +32,13 @@ from vbrl_ros.detection.detector import (
     submap_gap_s,
     to_sensor_frames,
 )
-from vbrl_ros.detection.odometry_gate import SPARE_FACTOR, kept_with_spares, path_lengths, too_far_by_odometry
+from vbrl_ros.detection.odometry_gate import (
+    SPARE_FACTOR,
+    kept_with_spares,
+    odometry_heading,
+    path_lengths,
+    too_far_by_odometry,
+)
 from vbrl_ros.detection.registration import QueryVerifier
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, KeyframeView, merged_cloud, neighbour_steps
@@ -118,21 +124,32 @@ class OdometryTrack:
     """One session's keyframes as the node's odometry knows them: the source's positions stand for
     it, as for submaps (:mod:`~vbrl_ros.detection.odometry_gate`)."""
 
-    positions: np.ndarray  # (n, 3), NaN where unknown
+    poses: np.ndarray  # (n, 4, 4) T_world_lidar, NaN where unknown
     paths: np.ndarray  # (n,) metres driven from the start
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.poses[:, :3, 3]
 
     @classmethod
     def of(cls, poses: np.ndarray | None) -> OdometryTrack | None:
         """The track of a source's keyframe poses (n, 4, 4), in order; None without poses."""
         if poses is None:
             return None
-        positions = np.asarray(poses, dtype=np.float64)[:, :3, 3]
-        return cls(positions, path_lengths(positions, np.zeros(len(positions), np.int64)))
+        poses = np.asarray(poses, dtype=np.float64)
+        return cls(poses, path_lengths(poses[:, :3, 3], np.zeros(len(poses), np.int64)))
 
     def too_far(self, query: int, match: int, settings: DetectorSettings) -> bool:
         apart = float(np.linalg.norm(self.positions[query] - self.positions[match]))
         return too_far_by_odometry(apart, float(self.paths[query] - self.paths[match]),
                                    settings.max_closure_distance, settings.odometry_drift)
+
+    def heading(self, query: int, match: int, query_frame: np.ndarray, match_frame: np.ndarray,
+                settings: DetectorSettings) -> float:
+        """The yaw odometry expects the registration to find, as the node's (NaN with the gate off)."""
+        if settings.odometry_drift <= 0:
+            return math.nan
+        return odometry_heading(self.poses[query], self.poses[match], query_frame, match_frame)
 
 
 _worker: _Work | None = None
@@ -159,14 +176,16 @@ def _verify(task: tuple[int, int]) -> tuple[float, str | None, np.ndarray, bool]
         return math.nan, "odometry", np.full((4, 4), np.nan), False  # as the node: not registered
     if _last_query is None or _last_query[0] != query:
         _last_query = (query, query_verifier(work.queries.clouds[query], work.settings, max_threads=1))
-    check = _last_query[1].verify(work.database.clouds[match])
+    expected = math.nan if work.odometry is None else work.odometry.heading(
+        query, match, work.queries.frames[query], work.database.frames[match], work.settings)
+    check = _last_query[1].verify(work.database.clouds[match], expected_yaw=expected)
     T, _ = to_sensor_frames(check, work.queries.frames[query], work.database.frames[match])
     reason = closure_rejection(check, T, work.settings)
     if reason == "degenerate" and work.wider is not None and check.fitness >= work.retry_fitness:
         # as the node: once more with submaps of twice the neighbours (detector.LoopClosureDetector.verified)
         wider_queries, wider_database = work.wider
         again = query_verifier(wider_queries.clouds[query], work.settings, max_threads=1).verify(
-            wider_database.clouds[match])
+            wider_database.clouds[match], expected_yaw=expected)
         T_again, _ = to_sensor_frames(again, work.queries.frames[query], work.database.frames[match])
         if closure_rejection(again, T_again, work.settings) is None:
             return again.fitness, None, T_again, True

@@ -77,8 +77,10 @@ DESCRIPTIONS: dict[str, str] = {
                       "odometry may have drifted: a candidate odometry places farther from the keyframe than "
                       "max_closure_distance + 5 m + this share of that path is rejected without being "
                       "registered (a repeated building, a second identical corridor), and the next "
-                      "candidates take its place among the top_k verified. 0: off; without "
-                      "odometry, and between keyframes of different sessions, it never applies.",
+                      "candidates take its place among the top_k verified; the others are registered only "
+                      "at headings within 45 degrees of odometry's (a symmetric courtyard or crossing turned "
+                      "by a quarter is not the place). 0: off; without odometry, and between keyframes of "
+                      "different sessions, it never applies.",
     "save_every": "keyframes between database saves. 0: only at shutdown or on ~/save_database.",
     "weight_prune": "descriptor rows weighing less than this times the largest row weight are neither "
                     "stored nor scored (learned sparsity; 0.0001 drops about 13 % of the built-in "

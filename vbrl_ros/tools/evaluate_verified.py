@@ -50,8 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "source's poses (0: single scans)")
     verify.add_argument("--odometry-drift", type=float, default=NODE_DEFAULTS.odometry_drift, metavar="S",
                         help="the node's odometry_drift: P1 candidates the source's poses place farther than "
-                             "max_closure_distance + 5 m + S x the path between them are rejected unverified "
-                             "(0: off)")
+                             "max_closure_distance + 5 m + S x the path between them are rejected unverified, "
+                             "the rest registered at headings within 45 degrees of the poses' (0: off)")
 
 
 @dataclass
