@@ -173,19 +173,34 @@ def test_invalid_input_is_refused():
 # -- memory and growth -----------------------------------------------------------------
 
 
-def test_bytes_per_keyframe_is_descriptor_key_and_metadata():
+def test_bytes_per_keyframe_is_descriptor_key_metadata_and_place():
     db, _ = make_db(0)
     active = D - 15
     key = -(-min(256, active) // 2)  # 4-bit key entries, at most one per active row
-    assert db.bytes_per_keyframe() == active * 4 + key + METADATA_BYTES_PER_KEYFRAME
+    assert db.bytes_per_keyframe() == active * 4 + key + METADATA_BYTES_PER_KEYFRAME + 40
     assert db.bytes_breakdown() == {"descriptor": active * 4, "key": key, "yaw_key": 0,
-                                    "metadata": METADATA_BYTES_PER_KEYFRAME}
+                                    "metadata": METADATA_BYTES_PER_KEYFRAME, "place": 40}
     full = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), model_id="default")
     # 256 + 512 four-bit key entries (scan key, refine key)
-    assert full.bytes_per_keyframe() == 7872 * 4 + 384 + METADATA_BYTES_PER_KEYFRAME == 32156
+    assert full.bytes_per_keyframe() == 7872 * 4 + 384 + METADATA_BYTES_PER_KEYFRAME + 40 == 32204
     half = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), "default", IndexParameters(storage="float16"))
-    assert half.bytes_per_keyframe() == 7872 * 2 + 384 + METADATA_BYTES_PER_KEYFRAME
+    assert half.bytes_per_keyframe() == 7872 * 2 + 384 + METADATA_BYTES_PER_KEYFRAME + 40
     assert full.cloud_bytes_per_keyframe() == 0.0
+
+
+def test_the_metadata_and_place_figures_are_what_a_keyframe_adds_to_the_arrays():
+    db = KeyframeDatabase(WeightedL1Scorer(np.ones(8)), model_id="m")
+    rng = np.random.default_rng(0)
+    for k in range(200):  # one session with odometry: every keyframe has a place
+        pose = np.eye(4)
+        pose[:2, 3] = rng.uniform(-500, 500, 2)
+        db.add(rng.normal(size=8).astype(np.float32), float(k), "0", pose=pose)
+    per_row = lambda arrays: sum(a.itemsize * int(np.prod(a.shape[1:])) for a in arrays)  # noqa: E731
+    metadata = [db._stamps, db._session_index, db._keyframe_ids, db._poses, db._frames, db._cloud_offsets,
+                db._paths]
+    assert per_row(metadata) == METADATA_BYTES_PER_KEYFRAME
+    places = db._places[0]
+    assert per_row([places._ids, places._positions, places._chain]) == db.bytes_breakdown()["place"]
 
 
 def test_add_is_amortised_constant_time():

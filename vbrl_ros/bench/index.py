@@ -20,7 +20,7 @@ to each size from real simulated descriptors (:func:`replicate`) and timed:
   queries at every size; skipped where brute force would scan more than
   ``_CROSS_SEASON_WORK`` descriptor values x shifts per query), and the
   agreement among the padding alone (:func:`winter_comparison`);
-- bytes per keyframe (descriptor, key, yaw key, metadata).
+- bytes per keyframe (descriptor, key, yaw key, metadata, place).
 
 ``drive`` repeats the comparison on the real drive itself (winter queries
 against the summer database, the paper's cross-season protocol): top-1
@@ -317,7 +317,7 @@ def format_table(results: dict[str, Any]) -> str:
         lines.append(
             f"{name}: d={shape['d_active']} S={shape['sectors']}; bytes/keyframe float32 = "
             f"{m['descriptor']} descriptor + {m['key']} key + {m['yaw_key']} yaw key + "
-            f"{m['metadata']} metadata; drive ({d['queries']} winter queries vs {d['database']}): "
+            f"{m['metadata']} metadata + {m['place']} place; drive ({d['queries']} winter queries vs {d['database']}): "
             f"top-1 = brute force {d['top1_agreement']:.3f}, Recall@1 {d['recall_at_1_index']:.3f} "
             f"(brute force {d['recall_at_1_exact']:.3f}){yaw}")
     p = results["pruning"]

@@ -32,6 +32,7 @@ from vbrl_ros.detection.database_file import MAX_KEYFRAME_ID, SavedDatabase, rea
 from vbrl_ros.detection.odometry_gate import DrivenPath, path_lengths
 from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, KeyframeView, merged_cloud, neighbour_steps
 from vbrl_ros.index.keyframe_index import KeyframeIndex
+from vbrl_ros.index.keyframe_places import BYTES_PER_KEYFRAME as PLACE_BYTES_PER_KEYFRAME
 from vbrl_ros.index.keyframe_places import KeyframePlaces
 from vbrl_ros.index.keyframe_store import grown
 from vbrl_ros.index.parameters import IndexParameters
@@ -41,8 +42,8 @@ from vbrl_ros.model.scoring import WeightedL1Scorer
 
 _INITIAL_CAPACITY = 64
 # Fixed per-keyframe metadata: stamp f64 + session index i32 + id i64
-# + pose and frame 4x4 f64 + cloud offset i64.
-METADATA_BYTES_PER_KEYFRAME = 8 + 4 + 8 + 2 * 16 * 8 + 8
+# + pose and frame 4x4 f64 + cloud offset i64 + metres driven f64 (odometry gate).
+METADATA_BYTES_PER_KEYFRAME = 8 + 4 + 8 + 2 * 16 * 8 + 8 + 8
 
 
 @dataclass(frozen=True)
@@ -203,12 +204,14 @@ class KeyframeDatabase:
     # -- memory -------------------------------------------------------------
 
     def bytes_per_keyframe(self) -> int:
-        """Fixed bytes per keyframe: descriptor + search keys + metadata, no cloud."""
-        return self.index.bytes_per_keyframe() + METADATA_BYTES_PER_KEYFRAME
+        """Fixed bytes per keyframe: descriptor + search keys + metadata + place, no cloud."""
+        return sum(self.bytes_breakdown().values())
 
     def bytes_breakdown(self) -> dict[str, int]:
-        """Per-keyframe bytes: descriptor, key, yaw_key (index) and metadata."""
-        return {**self.index.bytes_breakdown(), "metadata": METADATA_BYTES_PER_KEYFRAME}
+        """Per-keyframe bytes: descriptor, key, yaw_key (index), metadata and place (where it was
+        taken, for sequence matching by place)."""
+        return {**self.index.bytes_breakdown(), "metadata": METADATA_BYTES_PER_KEYFRAME,
+                "place": PLACE_BYTES_PER_KEYFRAME}
 
     def cloud_bytes_per_keyframe(self) -> float:
         """Mean bytes of stored cloud per keyframe (12 per point; 0 for an empty database)."""

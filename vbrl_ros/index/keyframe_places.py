@@ -14,6 +14,9 @@ import numpy as np
 from numba import njit
 
 _EMPTY = -1
+#: Bytes each keyframe adds: its id, position and link in its cell's chain (the table of cells
+#: grows with the ground covered, not with the keyframes, and is not counted).
+BYTES_PER_KEYFRAME = 8 + 3 * 8 + 8
 
 
 @njit(cache=True, nogil=True)
