@@ -123,15 +123,16 @@ def turned(yaw_deg: float, x: float = 0.0, y: float = 0.0, roll_deg: float = 0.0
 
 def test_odometry_s_heading_is_the_yaw_between_the_levelled_frames():
     query, match = turned(100.0, 3.0, 1.0), turned(30.0)
-    assert math.isclose(math.degrees(odometry_heading(query, match, np.eye(4), np.eye(4))), -70.0, abs_tol=1e-9)
+    assert math.isclose(math.degrees(odometry_heading(query, match, np.eye(4), np.eye(4), 0.1)), -70.0, abs_tol=1e-9)
     # each sensor tipped by 10 degrees of roll on its mount: its levelled frame takes the roll out and
     # lifts it to the ground's height, and the heading between the levelled frames is the same
     tipped_query, tipped_match = query @ turned(0.0, roll_deg=10.0), match @ turned(0.0, roll_deg=10.0)
     level = turned(0.0, roll_deg=10.0)
     level[2, 3] = 1.5
-    heading = odometry_heading(tipped_query, tipped_match, level, level)
+    heading = odometry_heading(tipped_query, tipped_match, level, level, 0.1)
     assert math.isclose(math.degrees(heading), -70.0, abs_tol=1e-6)
-    assert math.isnan(odometry_heading(np.full((4, 4), np.nan), match, np.eye(4), np.eye(4)))
+    assert math.isnan(odometry_heading(np.full((4, 4), np.nan), match, np.eye(4), np.eye(4), 0.1))
+    assert math.isnan(odometry_heading(query, match, np.eye(4), np.eye(4), 0.0))  # odometry_drift 0: off
 
 
 def revisit_turned(odometry_drift: float, *, another_session: bool = False, verified: bool = False):

@@ -168,7 +168,7 @@ def test_evaluation_tells_the_verification_the_heading_odometry_expects_as_the_n
     told = expected_yaws
     track = OdometryTrack.of(poses)
     checked = verify_candidates(clouds, None, candidates, DetectorSettings(), odometry=track, workers=1, progress=False)
-    expected = odometry_heading(poses[q], poses[revisit], clouds.frames[q], clouds.frames[revisit])
+    expected = odometry_heading(poses[q], poses[revisit], clouds.frames[q], clouds.frames[revisit], 0.1)
     assert told == [expected] and math.isfinite(expected)
     assert checked.accepted_at(0.2)[q, 0]
     # the gate off, or no odometry (P2): no expectation, as at the node

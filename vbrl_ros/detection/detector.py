@@ -210,11 +210,12 @@ class LoopClosureDetector:
         apart, path = self.database.odometry_apart(query_row, candidate.index)
         if too_far_by_odometry(apart, path, self.settings.max_closure_distance, self.settings.odometry_drift):
             return replace(candidate, too_far_by_odometry=True)
-        if self.settings.odometry_drift > 0 and math.isfinite(apart):  # one session, both poses known
-            db = self.database
-            return replace(candidate, odometry_yaw=odometry_heading(
-                db.pose(query_row), db.pose(candidate.index), db.frame(query_row), db.frame(candidate.index)))
-        return candidate
+        if not math.isfinite(apart):  # another session, or a pose unknown: odometry says nothing
+            return candidate
+        db = self.database
+        return replace(candidate, odometry_yaw=odometry_heading(
+            db.pose(query_row), db.pose(candidate.index), db.frame(query_row), db.frame(candidate.index),
+            self.settings.odometry_drift))
 
     def widened(self, retrieval: Retrieval, positions: list[int]) -> Retrieval | None:
         """``retrieval`` with only the candidates at ``positions``, its query's and their clouds merged

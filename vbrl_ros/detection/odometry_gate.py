@@ -79,11 +79,12 @@ def kept_with_spares(too_far: list[bool], top_k: int) -> int:
 
 
 def odometry_heading(query_pose: np.ndarray, match_pose: np.ndarray, query_frame: np.ndarray,
-                     match_frame: np.ndarray) -> float:
+                     match_frame: np.ndarray, odometry_drift: float) -> float:
     """The yaw (radians) of ``T_query_match`` between two keyframes' levelled frames (sensor -> grid,
     where verification registers them) as odometry gives it: ``query_pose`` and ``match_pose`` are
-    T_world_lidar of one session. NaN where a pose is unknown."""
-    if not (np.all(np.isfinite(query_pose)) and np.all(np.isfinite(match_pose))):
+    T_world_lidar of one session. NaN where a pose is unknown, and with ``odometry_drift`` 0 (odometry
+    trusted for neither, as by :func:`too_far_by_odometry`)."""
+    if odometry_drift <= 0 or not (np.all(np.isfinite(query_pose)) and np.all(np.isfinite(match_pose))):
         return float("nan")
     T = query_frame @ np.linalg.solve(query_pose, match_pose) @ np.linalg.inv(match_frame)
     return float(np.arctan2(T[1, 0], T[0, 0]))

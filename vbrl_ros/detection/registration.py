@@ -60,6 +60,7 @@ from vbrl_ros.detection.coarse_alignment import MAX_SHIFT_M
 from vbrl_ros.detection.overlap import agreement_of, covisible_overlap, is_constrained
 from vbrl_ros.detection.pose_covariance import inlier_statistics
 from vbrl_ros.detection.prepared_cloud import MAX_POINT_RANGE_M, PreparedCloud, thinned
+from vbrl_ros.model.sector_shift import wrap_angle
 
 __all__ = ["COARSE_TO_FINE", "EXPECTED_YAW_TOLERANCE_DEG", "MAX_POINT_RANGE_M", "SEARCH_MARGIN_M", "QueryVerifier",
            "Verification", "downsample_for_storage", "verify_loop", "yaw_guess"]
@@ -331,7 +332,7 @@ def _align(
 
 def _yaw_apart(T: np.ndarray, yaw: float) -> float:
     """|yaw of ``T`` - ``yaw``| in radians, wrapped to [0, pi]."""
-    return abs((math.atan2(T[1, 0], T[0, 0]) - yaw + math.pi) % (2.0 * math.pi) - math.pi)
+    return abs(float(wrap_angle(math.atan2(T[1, 0], T[0, 0]) - yaw)))
 
 
 def _angle(T: np.ndarray) -> float:

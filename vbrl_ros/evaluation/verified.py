@@ -147,9 +147,8 @@ class OdometryTrack:
     def heading(self, query: int, match: int, query_frame: np.ndarray, match_frame: np.ndarray,
                 settings: DetectorSettings) -> float:
         """The yaw odometry expects the registration to find, as the node's (NaN with the gate off)."""
-        if settings.odometry_drift <= 0:
-            return math.nan
-        return odometry_heading(self.poses[query], self.poses[match], query_frame, match_frame)
+        return odometry_heading(self.poses[query], self.poses[match], query_frame, match_frame,
+                                settings.odometry_drift)
 
 
 _worker: _Work | None = None
