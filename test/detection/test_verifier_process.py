@@ -47,6 +47,7 @@ def test_the_child_s_closures_and_rejections_are_the_in_process_ones(retrievals)
         assert (a.keyframe_id, a.rejections, a.rejected_by_verification) == (b.keyframe_id, b.rejections,
                                                                              b.rejected_by_verification)
         assert [(c.match_id, c.fitness) for c in a.closures] == [(c.match_id, c.fitness) for c in b.closures]
+        assert [(c.match_id, c.fitness) for c in a.weak] == [(c.match_id, c.fitness) for c in b.weak]
         for c, d in zip(a.closures, b.closures):  # KISS-ICP's parallel sums: rounding may differ
             np.testing.assert_allclose(c.T_query_match, d.T_query_match, rtol=0, atol=1e-9)
             np.testing.assert_allclose(c.covariance, d.covariance, rtol=1e-6, atol=1e-15)

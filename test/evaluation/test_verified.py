@@ -11,6 +11,7 @@ from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.evaluation.metrics import evaluate_online
 from vbrl_ros.evaluation.verified import (
     Candidates,
+    Corroboration,
     KeyframeClouds,
     OdometryTrack,
     VerifiedCandidates,
@@ -231,3 +232,37 @@ def test_evaluation_retries_a_degenerate_registration_with_the_wider_clouds_as_t
     again = verify_candidates(narrow, None, candidates, rule, wider=(wider, None), workers=1, progress=False)
     assert again.rejection[0, 0] is None and again.retried[0, 0]
     assert np.linalg.norm(again.T_query_match[0, 0][:3, 3]) < 0.5
+
+
+def test_the_node_reading_publishes_weak_registrations_the_queries_before_corroborate():
+    # database keyframes a metre apart along x, keyframe 20 100 m off; queries 0-2 revisit 10-12 m
+    # weakly, 3 registers weakly to 20, 4 passes outright; every registration puts the query sensor
+    # 0.2 m to the side of its match
+    database = np.tile(np.eye(4), (30, 1, 1))
+    database[:, 0, 3] = np.arange(30.0)
+    database[20, 0, 3] = 100.0
+    queries = np.c_[np.arange(5.0) + 500.0, np.zeros(5), np.zeros(5)]  # its own frame, a metre a keyframe
+    candidates = Candidates(np.array([[10, 3], [11, 4], [12, 5], [20, 6], [13, 7]]), np.ones((5, 2)))
+    aside = np.eye(4)
+    aside[1, 3] = -0.2  # match-frame points into the query frame: the query sensor at +0.2 m in y
+    fitness = np.array([[0.17, 0.05], [0.18, 0.10], [0.19, 0.10], [0.19, 0.10], [0.50, 0.30]])
+    verified = VerifiedCandidates(fitness, np.full((5, 2), None, dtype=object), np.tile(aside, (5, 2, 1, 1)))
+    corroboration = Corroboration(queries, database, fitness=0.16)
+    indices, decided = node_decision(candidates, verified, INF, 0.2, 2, corroboration)
+    # 0, 1: not two before them; 2: 0 and 1 were registered 2 m and 1 m back; 3: 88 m from where
+    # they were; 4: plainly
+    np.testing.assert_array_equal(indices[:, 0], [-1, -1, 12, -1, 13])
+    np.testing.assert_array_equal(decided[:, 0], [INF, INF, 0.0, INF, 0.0])
+    assert node_decision(candidates, verified, INF, 0.2, 2)[0][:, 0].tolist() == [-1, -1, -1, -1, 13]
+    off = Corroboration(queries, database, fitness=0.2)  # at min_fitness: off
+    assert node_decision(candidates, verified, INF, 0.2, 2, off)[0][:, 0].tolist() == [-1, -1, -1, -1, 13]
+    # registered only if not refused: with 10 sliding, query 2 has one agreeing keyframe before it
+    slid = VerifiedCandidates(fitness, np.array([["degenerate", None]] + [[None, None]] * 4, dtype=object),
+                              verified.T_query_match)
+    assert node_decision(candidates, slid, INF, 0.2, 2, corroboration)[0][:, 0].tolist() == [-1, -1, -1, -1, 13]
+    # where the registration puts the query counts, not the keyframe it matched: query 2's registration
+    # says it stood 4 m from its match, 3 m farther than odometry allows
+    moved = verified.T_query_match.copy()
+    moved[2, 0, 0, 3] = -4.0
+    wrong = VerifiedCandidates(fitness, verified.rejection, moved)
+    assert node_decision(candidates, wrong, INF, 0.2, 2, corroboration)[0][:, 0].tolist() == [-1, -1, -1, -1, 13]

@@ -112,5 +112,6 @@ def test_odometry_clouds_closures_and_fast_diagnostics_together(fast_thread_swit
     # the load did happen (verified: each keyframe's candidates until the first that passes)
     closures = 20 if verify else 500
     assert s["keyframes_processed"] > 50 and s["loop_closures"] > closures
+    assert 0 <= s["corroborated_closures"] <= s["loop_closures"]
     edges = collector.messages["/vbrl_node/markers"][-1].markers[1].points
     assert len(edges) > closures

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from vbrl_ros.detection.corroboration import RecentRegistrations, registered_position
 from vbrl_ros.detection.database import Candidate, KeyframeDatabase
 from vbrl_ros.detection.odometry_gate import SPARE_FACTOR, kept_with_spares, odometry_heading, too_far_by_odometry
 from vbrl_ros.detection.registration import (
@@ -59,6 +60,10 @@ class KeyframeResult:
     rejections: dict[str, int] = field(default_factory=dict)  # reason -> candidates rejected for it
     # positions in the retrieval's candidates of registrations worth a wider submap (see WIDER_RETRY_FITNESS)
     degenerate: list[int] = field(default_factory=list)
+    # registrations short of min_fitness but at least corroborated_fitness, in candidate order: published
+    # when an earlier keyframe corroborates them (detection.corroboration)
+    weak: list[LoopClosure] = field(default_factory=list)
+    corroborated: int = 0  # of the closures, how many were accepted so
 
     @property
     def rejected_by_verification(self) -> int:
@@ -140,6 +145,7 @@ class LoopClosureDetector:
         self.trail = Trail(model.config.features.trail_m)  # the keyframes a keyframe is described with
         self.scorer = database.scorer
         self.sequence = SequenceHistory(settings.sequence_length)
+        self.recent = RecentRegistrations()  # what the last keyframes registered to, to corroborate with
 
     def process_keyframe(
         self, points: np.ndarray, stamp: float, pose: np.ndarray | None = None,
@@ -161,7 +167,44 @@ class LoopClosureDetector:
                 wider = self.widened(retrieval, result.degenerate)
             if wider is not None:
                 result = with_wider_retry(result, verify(wider), self.settings)
+        if self.settings.verify and self.settings.corroborated_fitness < self.settings.min_fitness:
+            with database_lock or nullcontext():
+                result = self._corroborated(retrieval, result)
         return result
+
+    def _corroborated(self, retrieval: Retrieval, result: KeyframeResult) -> KeyframeResult:
+        """``result`` with its weak registrations that the last keyframes corroborate accepted, up to
+        ``max_closures``; then this keyframe's registrations remembered."""
+        def pose(keyframe_id: int) -> np.ndarray | None:
+            try:
+                T = self.database.pose(self.database.index_of(keyframe_id))
+            except KeyError:  # cleared since
+                return None
+            return T if np.isfinite(T).all() else None
+
+        def registered(closure: LoopClosure) -> np.ndarray | None:
+            match = pose(closure.match_id)
+            return None if match is None else registered_position(match, closure.T_query_match)
+
+        here = pose(retrieval.keyframe_id)
+        here = None if here is None else here[:3, 3]
+        accepted = []
+        for weak in result.weak:
+            if len(result.closures) + len(accepted) >= self.settings.max_closures:
+                break
+            if self.recent.corroborated(retrieval.keyframe_id, retrieval.session, here, weak.match_session,
+                                        registered(weak)):
+                accepted.append(weak)
+        self.recent.remember(retrieval.keyframe_id, retrieval.session, here,
+                             [(c.match_session, registered(c)) for c in result.closures + result.weak])
+        if not accepted:
+            return result
+        rejections = dict(result.rejections)
+        rejections["low fitness"] -= len(accepted)
+        if rejections["low fitness"] <= 0:
+            del rejections["low fitness"]
+        return replace(result, closures=result.closures + accepted, rejections=rejections,
+                       corroborated=len(accepted))
 
     def retrieve(
         self, points: np.ndarray, stamp: float, pose: np.ndarray | None = None,
@@ -256,6 +299,7 @@ def verify_candidates(retrieval: Retrieval, settings: DetectorSettings) -> Keyfr
     closures: list[LoopClosure] = []
     rejections: dict[str, int] = {}
     degenerate: list[int] = []
+    weak: list[LoopClosure] = []
     # the query's thinning, ground, KD-tree and heading image are prepared once for all candidates
     verifier = query_verifier(retrieval.cloud, settings) if settings.verify and retrieval.candidates else None
     for k, candidate in enumerate(retrieval.candidates):
@@ -276,19 +320,28 @@ def verify_candidates(retrieval: Retrieval, settings: DetectorSettings) -> Keyfr
             check = verifier.verify(retrieval.candidate_clouds[k], expected_yaw=candidate.odometry_yaw)
             T, covariance = to_sensor_frames(check, retrieval.frame, retrieval.candidate_frames[k])
             reason = closure_rejection(check, T, settings)
-            if reason is not None:
-                rejections[reason] = rejections.get(reason, 0) + 1
-                if reason == "degenerate" and check.fitness >= WIDER_RETRY_FITNESS * settings.min_fitness:
-                    degenerate.append(k)
-                continue
             closure = LoopClosure(
                 **{**closure.__dict__, "T_query_match": T, "fitness": check.fitness,
                    "covariance": covariance}
             )
+            if reason is not None:
+                rejections[reason] = rejections.get(reason, 0) + 1
+                if reason == "degenerate" and check.fitness >= WIDER_RETRY_FITNESS * settings.min_fitness:
+                    degenerate.append(k)
+                if reason == "low fitness" and is_weak(check.fitness, T, settings):
+                    weak.append(closure)
+                continue
         closures.append(closure)
     timings = {**retrieval.timings_ms, "verify": 1e3 * (time.perf_counter() - start)}
     return KeyframeResult(retrieval.keyframe_id, closures, retrieval.candidates_scored, timings, rejections,
-                          degenerate)
+                          degenerate, weak)
+
+
+def is_weak(fitness: float, T_query_match: np.ndarray, settings: DetectorSettings) -> bool:
+    """Whether a registration refused only for its fitness may still be corroborated: at least
+    ``corroborated_fitness`` and no farther than a closure may be."""
+    return (settings.corroborated_fitness <= fitness < settings.min_fitness
+            and float(np.linalg.norm(T_query_match[:3, 3])) <= settings.max_closure_distance)
 
 
 def submap_gap_s(settings: DetectorSettings) -> float:

@@ -32,6 +32,9 @@ class DetectorSettings:
     max_closures: int = 1  # accepted closures published per keyframe
     verify: bool = True  # KISS-ICP registration of each candidate
     min_fitness: float = 0.2  # verified closures whose structure overlap is below this are rejected
+    # a closure below min_fitness but at least this is accepted when two of the three keyframes before
+    # registered to the same place, agreeing with it (detection.corroboration); >= min_fitness: off
+    corroborated_fitness: float = 0.16
     max_closure_distance: float = 5.0  # metres; verified closures between sensors farther apart are rejected
     verification_voxel: float = 1.0  # metres; stored clouds and registration use this voxel
     translation_search: float = -1.0  # metres between query viewpoints; 0: none; -1: the model's
@@ -49,6 +52,7 @@ class DetectorSettings:
             "top_k": (isinstance(self.top_k, int) and self.top_k >= 1, ">= 1"),
             "max_closures": (isinstance(self.max_closures, int) and self.max_closures >= 1, ">= 1"),
             "min_fitness": (0.0 <= self.min_fitness <= 1.0, "in [0, 1]"),
+            "corroborated_fitness": (0.0 <= self.corroborated_fitness <= 1.0, "in [0, 1] (>= min_fitness: off)"),
             "max_closure_distance": (_at_least(self.max_closure_distance, 0) and self.max_closure_distance > 0,
                                      "a positive number of metres"),
             "verification_voxel": (_at_least(self.verification_voxel, VOXEL_M[0])

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
+from vbrl_ros.detection.corroboration import RecentRegistrations, registered_position
 from vbrl_ros.detection.detector import (
     WIDER_RETRY_FITNESS,
     closure_rejection,
@@ -45,9 +46,9 @@ from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, KeyframeView, m
 from vbrl_ros.evaluation.metrics import RetrievalMetrics
 from vbrl_ros.features.parallel import bounded_map, default_workers
 
-__all__ = ["TOP_K_RETRIEVED", "Candidates", "KeyframeClouds", "OdometryTrack", "OperatingPoint", "VerifiedCandidates",
-           "best_verified", "node_decision", "operating_point", "plausible_candidates", "retrieval_width",
-           "submap_clouds", "verify_candidates"]
+__all__ = ["TOP_K_RETRIEVED", "Candidates", "Corroboration", "KeyframeClouds", "OdometryTrack", "OperatingPoint",
+           "VerifiedCandidates", "best_verified", "node_decision", "operating_point", "plausible_candidates",
+           "retrieval_width", "submap_clouds", "verify_candidates"]
 
 
 def retrieval_width(top_k: int) -> int:
@@ -257,18 +258,65 @@ def best_verified(candidates: Candidates, verified: VerifiedCandidates) -> tuple
     return indices, np.where(found, 1.0 - fitness[rows, best], np.inf)[:, None]
 
 
+@dataclass(frozen=True)
+class Corroboration:
+    """Where the node's odometry places each query and each stored keyframe (each in its own session's
+    frame; NaN where unknown), and the fitness from which a closure may be corroborated
+    (:mod:`~vbrl_ros.detection.corroboration`)."""
+
+    query_positions: np.ndarray  # (n_queries, 3)
+    database_poses: np.ndarray  # (n_database, 4, 4) T_world_lidar
+    fitness: float
+
+
 def node_decision(candidates: Candidates, verified: VerifiedCandidates, distance_threshold: float,
-                  min_fitness: float, top_k: int) -> tuple[np.ndarray, np.ndarray]:
+                  min_fitness: float, top_k: int,
+                  corroboration: Corroboration | None = None) -> tuple[np.ndarray, np.ndarray]:
     """What the node publishes per query: the first of its ``top_k`` candidates within
-    ``distance_threshold`` that the rule accepts at ``min_fitness``; ``(indices (n, 1), 0 or inf)``."""
-    ok = verified.accepted_at(min_fitness)[:, :top_k] & (candidates.distances[:, :top_k] <= distance_threshold)
+    ``distance_threshold`` that the rule accepts at ``min_fitness``, else, with ``corroboration``, the
+    first weak one the queries before corroborate; ``(indices (n, 1), 0 or inf)``."""
+    within = candidates.distances[:, :top_k] <= distance_threshold
+    ok = verified.accepted_at(min_fitness)[:, :top_k] & within
+    plain = np.ones_like(ok) if verified.retried is None else ~verified.retried[:, :top_k]
     if verified.retried is not None:  # the node retries wider only when no candidate passed as it was
-        plain = ok & ~verified.retried[:, :top_k]
-        ok = np.where(plain.any(axis=1, keepdims=True), plain, ok)
+        ok = np.where((ok & plain).any(axis=1, keepdims=True), ok & plain, ok)
     first = np.argmax(ok, axis=1)
     found = ok.any(axis=1)
-    indices = np.where(found, candidates.indices[np.arange(len(first)), first], -1)[:, None]
-    return indices, np.where(found, 0.0, np.inf)[:, None]
+    indices = np.where(found, candidates.indices[np.arange(len(first)), first], -1)
+    if corroboration is not None and corroboration.fitness < min_fitness:
+        fitness = verified.fitness[:, :top_k]
+        weak = (verified.accepted_at(corroboration.fitness)[:, :top_k] & within & plain
+                & (fitness < min_fitness))
+        # the node registers candidates until one passes; one that passed only wider came after them all
+        stop = np.where(found & plain[np.arange(len(first)), first], first, top_k)
+        indices = _corroborated(indices, np.where(found, first, -1), stop, candidates.indices[:, :top_k], weak,
+                                verified.T_query_match[:, :top_k], corroboration)
+    return indices[:, None], np.where(indices >= 0, 0.0, np.inf)[:, None]
+
+
+def _corroborated(published: np.ndarray, slot: np.ndarray, stop: np.ndarray, indices: np.ndarray, weak: np.ndarray,
+                  transforms: np.ndarray, corroboration: Corroboration) -> np.ndarray:
+    """``published`` (n,) with the weak candidates the queries before corroborate where it is -1, query by
+    query as the node decides; ``slot`` (n,): where the published one is among the candidates (-1:
+    none); ``stop`` (n,): how many the node registered before it (it stops at the one it publishes);
+    ``transforms`` (n, k, 4, 4): each candidate's registration."""
+    out = published.copy()
+    recent = RecentRegistrations()
+    queries, database = corroboration.query_positions, corroboration.database_poses
+
+    def registered(q: int, r: int) -> np.ndarray:
+        return registered_position(database[indices[q, r]], transforms[q, r])
+
+    for q in range(len(out)):
+        weak_slots = [r for r in range(int(stop[q])) if weak[q, r]]
+        if out[q] < 0:
+            for r in weak_slots:
+                if recent.corroborated(q, "query", queries[q], "database", registered(q, r)):
+                    out[q] = indices[q, r]
+                    break
+        slots = weak_slots + ([int(slot[q])] if slot[q] >= 0 else [])
+        recent.remember(q, "query", queries[q], [("database", registered(q, r)) for r in slots])
+    return out
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ from vbrl_ros.evaluation.metrics import RetrievalMetrics
 from vbrl_ros.evaluation.retrieval import RetrievalResults
 from vbrl_ros.evaluation.verified import (
     Candidates,
+    Corroboration,
     KeyframeClouds,
     OdometryTrack,
     OperatingPoint,
@@ -79,13 +80,17 @@ class VerificationInputs:
     clouds: tuple[KeyframeClouds, KeyframeClouds]
     wider: tuple[KeyframeClouds, KeyframeClouds] | None
     odometry: OdometryTrack | None
+    # where odometry places the queries (n, 3) and the stored keyframes (m, 4, 4), each in its session's
+    # frame (None without)
+    poses: tuple[np.ndarray, np.ndarray] | None = None
 
     @classmethod
     def of(cls, queries: SourceDescriptors, database: SourceDescriptors,
            rule: DetectorSettings) -> VerificationInputs:
         """``database`` is ``queries`` for P1."""
+        poses = None if queries.poses is None or database.poses is None else (queries.poses[:, :3, 3], database.poses)
         return cls(verified_clouds(queries, database, rule), wider_clouds(queries, database, rule),
-                   odometry_track(queries, database))
+                   odometry_track(queries, database), poses)
 
 
 @dataclass(frozen=True)
@@ -115,8 +120,9 @@ def verified_output(inputs: VerificationInputs, results: RetrievalResults, rule:
     best = best_verified(candidates, verified)
     swept = score(RetrievalResults(*best, results.database_limit))
     points = {}
+    corroboration = None if inputs.poses is None else Corroboration(*inputs.poses, rule.corroborated_fitness)
     for fitness in (rule.min_fitness,) if min_fitness is None else min_fitness:
-        decided, decision = node_decision(candidates, verified, distance_threshold, fitness, k)
+        decided, decision = node_decision(candidates, verified, distance_threshold, fitness, k, corroboration)
         accepted = int(np.isfinite(decision).sum())
         points[fitness] = {r: operating_point(m, accepted)
                            for r, m in score(RetrievalResults(decided, decision, results.database_limit)).items()}

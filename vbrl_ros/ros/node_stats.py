@@ -27,6 +27,7 @@ class StatsSnapshot:
     between_keyframes: int = 0  # valid or not, too close to the last keyframe to be one
     keyframes: int = 0  # described, searched and stored
     closures: int = 0
+    corroborated: int = 0  # of the closures, accepted below min_fitness as the keyframes before agreed
     rejected_by_verification: int = 0
     dropped: int = 0  # keyframes replaced by a newer one before the worker took them
     unverified: int = 0  # keyframes whose candidates a newer keyframe's replaced before verification
@@ -80,10 +81,12 @@ class NodeStats:
             self._counts["keyframes"] += 1
             self._retrieval_latencies_ms.append(latency_ms)
 
-    def decided(self, latency_ms: float, closures: int, rejected_by_verification: int) -> None:
-        """A keyframe's closures decided ``latency_ms`` after its cloud arrived."""
+    def decided(self, latency_ms: float, closures: int, rejected_by_verification: int,
+                corroborated: int = 0) -> None:
+        """A keyframe's closures decided ``latency_ms`` after its cloud arrived (``corroborated`` of them)."""
         with self._lock:
             self._counts["closures"] += closures
+            self._counts["corroborated"] += corroborated
             self._counts["rejected_by_verification"] += rejected_by_verification
             self._latencies_ms.append(latency_ms)
 

@@ -21,6 +21,7 @@ def diagnostics_status(stats: StatsSnapshot, database_size: int, session: int) -
         "scans_between_keyframes": stats.between_keyframes,
         "keyframes_processed": stats.keyframes,
         "loop_closures": stats.closures,
+        "corroborated_closures": stats.corroborated,
         "rejected_by_verification": stats.rejected_by_verification,
         "dropped_scans": stats.dropped,
         "unverified_keyframes": stats.unverified,

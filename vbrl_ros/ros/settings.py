@@ -61,6 +61,12 @@ DESCRIPTIONS: dict[str, str] = {
     "min_fitness": "verified closures whose fitness (the share of each cloud's structure within 0.3 "
                    "voxels of the other after registration, the smaller) is below this are rejected "
                    "(0 to 1).",
+    "corroborated_fitness": "a verified closure whose fitness is below min_fitness but at least this is "
+                            "accepted when two of the three keyframes before it were registered, at least "
+                            "this well, to the same session and there agree with it: where each "
+                            "registration puts the sensor lies within the distance odometry moved between "
+                            "them, plus 1 m (a sparse sensor's right closures along a stretch). "
+                            ">= min_fitness: off; without odometry it never applies.",
     "max_closure_distance": "verified closures between sensors farther apart than this many metres "
                             "are rejected: the registration may be right, but they are not one place.",
     "verification_voxel": "voxel size in metres of the stored clouds and of their registration, 0.05 to 10.",
