@@ -212,6 +212,17 @@ def test_the_node_reading_takes_a_wider_retry_only_when_nothing_passed_as_it_was
     np.testing.assert_array_equal(indices[:, 0], [7, 5])
 
 
+def test_a_sweep_over_min_fitness_counts_a_wider_retry_only_where_the_node_would_have_retried():
+    """The node retries a registration that slid only from WIDER_RETRY_FITNESS times its own
+    min_fitness: one whose first overlap was 0.13 is retried at 0.16 (from 0.112), not at 0.2."""
+    candidates = Candidates(np.array([[4], [5]]), np.ones((2, 1)))
+    verified = VerifiedCandidates(np.array([[0.30], [0.30]]), np.full((2, 1), None, dtype=object),
+                                  np.full((2, 1, 4, 4), np.nan), np.array([[True], [True]]),
+                                  np.array([[0.13], [0.15]]))
+    assert node_decision(candidates, verified, INF, 0.2, 1)[0][:, 0].tolist() == [-1, 5]
+    assert node_decision(candidates, verified, INF, 0.16, 1)[0][:, 0].tolist() == [4, 5]
+
+
 def corridor(rng: np.random.Generator, end_wall: bool) -> np.ndarray:
     """18 m of a 6 m wide corridor seen from its middle, 1 m up; ``end_wall``: closed at x = -6."""
     def plane(n, xs, ys, zs):

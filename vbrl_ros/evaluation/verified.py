@@ -78,6 +78,9 @@ class VerifiedCandidates:
     T_query_match: np.ndarray  # (n, k, 4, 4) between the sensors, NaN for padding
     # (n, k) bool: accepted only when retried with wider submaps (detector.WIDER_RETRY_FITNESS)
     retried: np.ndarray | None = None
+    # (n, k) the first registration's fitness of those retried (NaN for the others): the node retries
+    # only from WIDER_RETRY_FITNESS times its min_fitness, so a sweep over min_fitness needs it
+    retried_from: np.ndarray | None = None
 
     def accepted_at(self, min_fitness: float) -> np.ndarray:
         """(n, k) bool: converged, constrained, near enough and at least ``min_fitness``."""
@@ -168,12 +171,12 @@ def _init_worker(queries: KeyframeClouds, database: KeyframeClouds | None, setti
     _last_query = None
 
 
-def _verify(task: tuple[int, int]) -> tuple[float, str | None, np.ndarray, bool]:
+def _verify(task: tuple[int, int]) -> tuple[float, str | None, np.ndarray, float]:
     global _last_query
     assert _worker is not None
     work, (query, match) = _worker, task
     if work.odometry is not None and work.odometry.too_far(query, match, work.settings):
-        return math.nan, "odometry", np.full((4, 4), np.nan), False  # as the node: not registered
+        return math.nan, "odometry", np.full((4, 4), np.nan), math.nan  # as the node: not registered
     if _last_query is None or _last_query[0] != query:
         _last_query = (query, query_verifier(work.queries.clouds[query], work.settings, max_threads=1))
     expected = math.nan if work.odometry is None else work.odometry.heading(
@@ -188,8 +191,8 @@ def _verify(task: tuple[int, int]) -> tuple[float, str | None, np.ndarray, bool]
             wider_database.clouds[match], expected_yaw=expected)
         T_again, _ = to_sensor_frames(again, work.queries.frames[query], work.database.frames[match])
         if closure_rejection(again, T_again, work.settings) is None:
-            return again.fitness, None, T_again, True
-    return check.fitness, reason, T, False
+            return again.fitness, None, T_again, check.fitness
+    return check.fitness, reason, T, math.nan
 
 
 def verify_candidates(queries: KeyframeClouds, database: KeyframeClouds | None, candidates: Candidates,
@@ -204,7 +207,7 @@ def verify_candidates(queries: KeyframeClouds, database: KeyframeClouds | None, 
     fitness = np.full((n, k), np.nan)
     rejection = np.full((n, k), "no candidate", dtype=object)
     transforms = np.full((n, k, 4, 4), np.nan)
-    retried = np.zeros((n, k), dtype=bool)
+    retried_from = np.full((n, k), np.nan)
     slots = [(q, r) for q in range(n) for r in range(k) if candidates.indices[q, r] >= 0]
     tasks = [(q, int(candidates.indices[q, r])) for q, r in slots]
     workers = default_workers() if workers is None else workers
@@ -214,17 +217,17 @@ def verify_candidates(queries: KeyframeClouds, database: KeyframeClouds | None, 
         if workers <= 1:
             _init_worker(*initargs)
             results = map(_verify, tasks)
-            for (q, r), (f, why, T, again) in zip(slots, results):
-                fitness[q, r], rejection[q, r], transforms[q, r], retried[q, r] = f, why, T, again
+            for (q, r), (f, why, T, first) in zip(slots, results):
+                fitness[q, r], rejection[q, r], transforms[q, r], retried_from[q, r] = f, why, T, first
                 bar.update()
         else:
             with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=initargs) as pool:
-                for (q, r), (f, why, T, again) in zip(slots, bounded_map(pool, _verify, tasks, 8 * workers)):
-                    fitness[q, r], rejection[q, r], transforms[q, r], retried[q, r] = f, why, T, again
+                for (q, r), (f, why, T, first) in zip(slots, bounded_map(pool, _verify, tasks, 8 * workers)):
+                    fitness[q, r], rejection[q, r], transforms[q, r], retried_from[q, r] = f, why, T, first
                     bar.update()
     finally:
         bar.close()
-    return VerifiedCandidates(fitness, rejection, transforms, retried)
+    return VerifiedCandidates(fitness, rejection, transforms, np.isfinite(retried_from), retried_from)
 
 
 def plausible_candidates(indices: np.ndarray, distances: np.ndarray, settings: DetectorSettings,
@@ -278,6 +281,9 @@ def node_decision(candidates: Candidates, verified: VerifiedCandidates, distance
     within = candidates.distances[:, :top_k] <= distance_threshold
     ok = verified.accepted_at(min_fitness)[:, :top_k] & within
     plain = np.ones_like(ok) if verified.retried is None else ~verified.retried[:, :top_k]
+    if verified.retried_from is not None:  # retried by the node only from this first fitness on
+        with np.errstate(invalid="ignore"):
+            ok &= plain | (verified.retried_from[:, :top_k] >= WIDER_RETRY_FITNESS * min_fitness)
     if verified.retried is not None:  # the node retries wider only when no candidate passed as it was
         ok = np.where((ok & plain).any(axis=1, keepdims=True), ok & plain, ok)
     first = np.argmax(ok, axis=1)

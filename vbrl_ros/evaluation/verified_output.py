@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -115,13 +115,16 @@ def verified_output(inputs: VerificationInputs, results: RetrievalResults, rule:
     beyond ``distance_threshold`` unverified."""
     candidates = plausible_candidates(results.indices, results.distances, rule, inputs.odometry)
     k = candidates.indices.shape[1]  # at most top_k of them the odometry gate allows
-    verified = verify_candidates(*inputs.clouds, candidates, rule, wider=inputs.wider, odometry=inputs.odometry,
+    fitnesses = (rule.min_fitness,) if min_fitness is None else tuple(min_fitness)
+    # retried from the lowest min_fitness's threshold on; node_decision keeps what each would retry
+    lowest = replace(rule, min_fitness=min(fitnesses))
+    verified = verify_candidates(*inputs.clouds, candidates, lowest, wider=inputs.wider, odometry=inputs.odometry,
                                  workers=workers, progress=progress, description=description)
     best = best_verified(candidates, verified)
     swept = score(RetrievalResults(*best, results.database_limit))
     points = {}
     corroboration = None if inputs.poses is None else Corroboration(*inputs.poses, rule.corroborated_fitness)
-    for fitness in (rule.min_fitness,) if min_fitness is None else min_fitness:
+    for fitness in fitnesses:
         decided, decision = node_decision(candidates, verified, distance_threshold, fitness, k, corroboration)
         accepted = int(np.isfinite(decision).sum())
         points[fitness] = {r: operating_point(m, accepted)
