@@ -206,7 +206,7 @@ def test_the_node_reading_takes_a_wider_retry_only_when_nothing_passed_as_it_was
     candidates passed, so a retried acceptance never comes before a plain one."""
     retried = checked([[0.30, 0.40], [0.30, 0.10]], [[None, None], [None, "low fitness"]])
     retried = VerifiedCandidates(retried.fitness, retried.rejection, retried.T_query_match,
-                                 np.array([[True, False], [True, False]]))
+                                 np.array([[0.20, np.nan], [0.20, np.nan]]))  # first fitness of the retried
     candidates = Candidates(np.array([[4, 7], [5, 6]]), np.array([[1.0, 2.0], [1.5, 2.5]]))
     indices, _ = node_decision(candidates, retried, INF, min_fitness=0.2, top_k=2)
     np.testing.assert_array_equal(indices[:, 0], [7, 5])
@@ -217,8 +217,7 @@ def test_a_sweep_over_min_fitness_counts_a_wider_retry_only_where_the_node_would
     min_fitness: one whose first overlap was 0.13 is retried at 0.16 (from 0.112), not at 0.2."""
     candidates = Candidates(np.array([[4], [5]]), np.ones((2, 1)))
     verified = VerifiedCandidates(np.array([[0.30], [0.30]]), np.full((2, 1), None, dtype=object),
-                                  np.full((2, 1, 4, 4), np.nan), np.array([[True], [True]]),
-                                  np.array([[0.13], [0.15]]))
+                                  np.full((2, 1, 4, 4), np.nan), np.array([[0.13], [0.15]]))
     assert node_decision(candidates, verified, INF, 0.2, 1)[0][:, 0].tolist() == [-1, 5]
     assert node_decision(candidates, verified, INF, 0.16, 1)[0][:, 0].tolist() == [4, 5]
 

@@ -188,15 +188,15 @@ class LoopClosureDetector:
 
         here = pose(retrieval.keyframe_id)
         here = None if here is None else here[:3, 3]
+        registrations = [(c, registered(c)) for c in result.closures + result.weak]
         accepted = []
-        for weak in result.weak:
+        for weak, at in registrations[len(result.closures):]:
             if len(result.closures) + len(accepted) >= self.settings.max_closures:
                 break
-            if self.recent.corroborated(retrieval.keyframe_id, retrieval.session, here, weak.match_session,
-                                        registered(weak)):
+            if self.recent.corroborated(retrieval.keyframe_id, retrieval.session, here, weak.match_session, at):
                 accepted.append(weak)
         self.recent.remember(retrieval.keyframe_id, retrieval.session, here,
-                             [(c.match_session, registered(c)) for c in result.closures + result.weak])
+                             [(c.match_session, at) for c, at in registrations])
         if not accepted:
             return result
         rejections = dict(result.rejections)

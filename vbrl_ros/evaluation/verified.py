@@ -76,11 +76,15 @@ class VerifiedCandidates:
     fitness: np.ndarray  # (n, k), NaN for padding
     rejection: np.ndarray  # (n, k) object: the rule's reason at fitness 0 (None: accepted)
     T_query_match: np.ndarray  # (n, k, 4, 4) between the sensors, NaN for padding
-    # (n, k) bool: accepted only when retried with wider submaps (detector.WIDER_RETRY_FITNESS)
-    retried: np.ndarray | None = None
-    # (n, k) the first registration's fitness of those retried (NaN for the others): the node retries
-    # only from WIDER_RETRY_FITNESS times its min_fitness, so a sweep over min_fitness needs it
+    # (n, k) of those accepted only when retried with wider submaps (detector.WIDER_RETRY_FITNESS), the
+    # first registration's fitness, NaN for the others: the node retries only from WIDER_RETRY_FITNESS
+    # times its min_fitness, so a sweep over min_fitness needs it
     retried_from: np.ndarray | None = None
+
+    @property
+    def retried(self) -> np.ndarray | None:
+        """(n, k) bool: accepted only when retried with wider submaps; None when none were tried."""
+        return None if self.retried_from is None else np.isfinite(self.retried_from)
 
     def accepted_at(self, min_fitness: float) -> np.ndarray:
         """(n, k) bool: converged, constrained, near enough and at least ``min_fitness``."""
@@ -227,7 +231,7 @@ def verify_candidates(queries: KeyframeClouds, database: KeyframeClouds | None, 
                     bar.update()
     finally:
         bar.close()
-    return VerifiedCandidates(fitness, rejection, transforms, np.isfinite(retried_from), retried_from)
+    return VerifiedCandidates(fitness, rejection, transforms, retried_from)
 
 
 def plausible_candidates(indices: np.ndarray, distances: np.ndarray, settings: DetectorSettings,
@@ -280,11 +284,13 @@ def node_decision(candidates: Candidates, verified: VerifiedCandidates, distance
     first weak one the queries before corroborate; ``(indices (n, 1), 0 or inf)``."""
     within = candidates.distances[:, :top_k] <= distance_threshold
     ok = verified.accepted_at(min_fitness)[:, :top_k] & within
-    plain = np.ones_like(ok) if verified.retried is None else ~verified.retried[:, :top_k]
-    if verified.retried_from is not None:  # retried by the node only from this first fitness on
-        with np.errstate(invalid="ignore"):
-            ok &= plain | (verified.retried_from[:, :top_k] >= WIDER_RETRY_FITNESS * min_fitness)
-    if verified.retried is not None:  # the node retries wider only when no candidate passed as it was
+    plain = np.ones_like(ok)
+    if verified.retried_from is not None:
+        first_fitness = verified.retried_from[:, :top_k]
+        plain = np.isnan(first_fitness)
+        with np.errstate(invalid="ignore"):  # retried by the node only from this first fitness on
+            ok &= plain | (first_fitness >= WIDER_RETRY_FITNESS * min_fitness)
+        # the node retries wider only when no candidate passed as it was
         ok = np.where((ok & plain).any(axis=1, keepdims=True), ok & plain, ok)
     first = np.argmax(ok, axis=1)
     found = ok.any(axis=1)
@@ -310,18 +316,16 @@ def _corroborated(published: np.ndarray, slot: np.ndarray, stop: np.ndarray, ind
     recent = RecentRegistrations()
     queries, database = corroboration.query_positions, corroboration.database_poses
 
-    def registered(q: int, r: int) -> np.ndarray:
-        return registered_position(database[indices[q, r]], transforms[q, r])
-
     for q in range(len(out)):
         weak_slots = [r for r in range(int(stop[q])) if weak[q, r]]
+        slots = weak_slots + ([int(slot[q])] if slot[q] >= 0 else [])
+        at = {r: registered_position(database[indices[q, r]], transforms[q, r]) for r in slots}
         if out[q] < 0:
             for r in weak_slots:
-                if recent.corroborated(q, "query", queries[q], "database", registered(q, r)):
+                if recent.corroborated(q, "query", queries[q], "database", at[r]):
                     out[q] = indices[q, r]
                     break
-        slots = weak_slots + ([int(slot[q])] if slot[q] >= 0 else [])
-        recent.remember(q, "query", queries[q], [("database", registered(q, r)) for r in slots])
+        recent.remember(q, "query", queries[q], [("database", at[r]) for r in slots])
     return out
 
 
