@@ -146,3 +146,14 @@ def test_at_or_above_min_fitness_corroboration_is_off(first_drive):
     results = revisit(first_drive, 3, [(0.3, 0.3), (1.3, 1.3), (2.3, 2.3)], min_fitness=1.0,
                       corroborated_fitness=1.0)
     assert all(r.closures == [] and r.weak == [] for r in results)
+
+
+def test_clearing_the_database_forgets_the_last_keyframes_pools_and_registrations(first_drive):
+    # both name keyframes that are gone
+    model, database, scan = first_drive
+    found = LoopClosureDetector(model, database, DetectorSettings(session="drive 4", **WEAK))
+    for i, x in enumerate((0.3, 1.3)):
+        assert found.process_keyframe(scan(x, 4), 100.0 + i, pose(500.0 + x)).weak
+    assert len(found.sequence) and len(found.recent)
+    found.clear_database()
+    assert len(database) == 0 and len(found.sequence) == 0 and len(found.recent) == 0

@@ -86,5 +86,8 @@ class RecentRegistrations:
         known = tuple((s, np.asarray(p, float)) for s, p in registered if p is not None)
         self._recent.append(_Registered(keyframe_id, session, np.asarray(position, float), known))
 
+    def __len__(self) -> int:
+        return len(self._recent)
+
     def clear(self) -> None:
         self._recent.clear()

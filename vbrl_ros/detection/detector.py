@@ -147,6 +147,13 @@ class LoopClosureDetector:
         self.sequence = SequenceHistory(settings.sequence_length)
         self.recent = RecentRegistrations()  # what the last keyframes registered to, to corroborate with
 
+    def clear_database(self) -> None:
+        """Forget every stored keyframe, and with them the earlier keyframes' candidate pools and
+        registrations, which name keyframes that are gone. The trail stays: it is the live stream's."""
+        self.database.clear()
+        self.sequence.clear()
+        self.recent.clear()
+
     def process_keyframe(
         self, points: np.ndarray, stamp: float, pose: np.ndarray | None = None,
         gravity: np.ndarray | None = None,

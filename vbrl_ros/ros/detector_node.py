@@ -368,7 +368,7 @@ class VbrlNode(Node):
     def _on_clear(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self._db_lock:
             count = len(self.database)
-            self.database.clear()
+            self.detector.clear_database()
             self._edges.clear()
         response.success, response.message = True, f"cleared {count} keyframes"
         return response
