@@ -181,6 +181,9 @@ class FeatureConfig:
     ``mirror_blind_wedges`` also hides the mirror image of every wedge the sensor did not
     see (:mod:`vbrl_ros.features.blind_wedges`), so reversed revisits of a partly blind
     sensor compare the same directions; height-map modalities only.
+    ``mirror_field_of_view`` keeps of a tilted sensor's scan only what it would also see turned
+    half a turn (:mod:`vbrl_ros.features.field_of_view`), so a reversed pass keeps the same band
+    of the world; height-map modalities on a levelled (``grid.frame="ground"``) grid only.
     ``trail_m`` describes a keyframe with the keyframes of the last ``trail_m`` metres of
     odometry merged in, when its pose is known (:mod:`vbrl_ros.features.trail`; 0 = alone).
     ``drop_weather_clutter`` takes lone points in the air near the sensor (returns from rain,
@@ -202,6 +205,7 @@ class FeatureConfig:
     modalities: tuple[str, ...] = PAPER_MODALITIES
     normalise: bool = False
     mirror_blind_wedges: bool = False
+    mirror_field_of_view: bool = False
     drop_weather_clutter: bool = False
     trail_m: float = 0.0
 
@@ -225,6 +229,13 @@ class FeatureConfig:
             "features.mirror_blind_wedges",
             f"must be true or false, and true only with height-map modalities "
             f"({', '.join(HEIGHT_MAP_MODALITIES)}), got {self.mirror_blind_wedges!r}",
+        )
+        _require(
+            isinstance(self.mirror_field_of_view, bool)
+            and (not self.mirror_field_of_view or set(self.modalities) <= set(HEIGHT_MAP_MODALITIES)),
+            "features.mirror_field_of_view",
+            f"must be true or false, and true only with height-map modalities "
+            f"({', '.join(HEIGHT_MAP_MODALITIES)}), got {self.mirror_field_of_view!r}",
         )
         _require(
             isinstance(self.drop_weather_clutter, bool)
@@ -276,6 +287,8 @@ class FeatureConfig:
             del out["normalise"]
         if not self.mirror_blind_wedges:
             del out["mirror_blind_wedges"]
+        if not self.mirror_field_of_view:
+            del out["mirror_field_of_view"]
         if not self.drop_weather_clutter:
             del out["drop_weather_clutter"]
         if self.trail_m == 0.0:
@@ -300,6 +313,11 @@ class VBRLConfig:
             "spectrum" not in self.features.modalities or self.grid.kind == "polar",
             "features.modalities",
             "'spectrum' needs a polar grid: its rings and sectors are frequency and direction",
+        )
+        _require(
+            not self.features.mirror_field_of_view or self.grid.frame == "ground",
+            "features.mirror_field_of_view",
+            "needs a levelled grid (grid.frame: ground): the tilt it mirrors is the levelling's",
         )
 
     def to_dict(self) -> dict[str, Any]:

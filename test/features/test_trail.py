@@ -13,7 +13,6 @@ from vbrl_ros.features.trail import (
     TRAIL_POINTS,
     Trail,
     confirmed,
-    trail_clouds,
     with_trail,
 )
 
@@ -139,7 +138,7 @@ def test_with_trail_pairs_each_scan_with_the_cloud_it_is_described_by():
     pairs = list(with_trail(scans, poses, 3.0))
     assert [p[0] is s for p, s in zip(pairs, scans)] == [True] * 3
     assert pairs[0][1] is scans[0] and all(len(c) != len(s) for (s, c) in pairs[1:])
-    assert all(c is s for c, s in zip(trail_clouds(scans, None, 3.0), scans))  # no poses, no trail
+    assert all(c is s for s, c in with_trail(scans, None, 3.0))  # no poses, no trail
 
 
 @pytest.mark.parametrize("reach", [-1.0, float("nan"), float("inf")])

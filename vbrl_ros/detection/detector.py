@@ -221,7 +221,7 @@ class LoopClosureDetector:
         cfg = self.settings
         t0 = time.perf_counter()
         described = self.trail.cloud(points, pose, cfg.session)
-        frame = self.featurizer.frame(described, gravity)
+        frame = self.featurizer.frame(described, gravity, scan=points)
         views = self.scorer.compact(self.model.standardize(
             self.featurizer.describe_views(described, self.view_offsets, frame)))
         t1 = time.perf_counter()

@@ -98,7 +98,7 @@ def _describe(scan: tuple[np.ndarray, np.ndarray | None]) -> tuple[np.ndarray, n
     featurizer, sc_config, offsets, voxel, sc_trail = _worker
     points, described = scan
     described = points if described is None else described
-    frame = featurizer.frame(described)
+    frame = featurizer.frame(described, scan=points)
     views = featurizer.describe_views(described, offsets, frame)
     cloud = None if voxel is None else verification_cloud(points, frame.matrix, voxel)
     return views, scan_context(described if sc_trail else points, sc_config), cloud, frame.matrix

@@ -26,13 +26,14 @@ reference the tests hold the kernel to. Neither loops over voxels in Python.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
 
 from vbrl_ros.config import HEIGHT_MAP_MODALITIES, MODALITY_NAMES, PAPER_MODALITIES, VBRLConfig
 from vbrl_ros.features.blind_wedges import hide_mirrored_wedges
+from vbrl_ros.features.field_of_view import field_top
 from vbrl_ros.features.height_map import CELL_M
 from vbrl_ros.features.height_views import HeightMapModalities, map_reach
 from vbrl_ros.features.hog import hog_batch
@@ -168,18 +169,25 @@ class Featurizer:
     def modality_names(self) -> tuple[str, ...]:
         return self.config.features.modalities
 
-    def frame(self, points: np.ndarray, gravity: np.ndarray | None = None) -> GroundFrame:
+    def frame(self, points: np.ndarray, gravity: np.ndarray | None = None,
+              scan: np.ndarray | None = None) -> GroundFrame:
         """The frame the grid reads ``points`` (sensor frame) in: levelled on the scan's ground
-        (``gravity``: 3x3 sensor -> gravity-aligned rotation, if known) or the sensor's own."""
-        if self.config.grid.frame == "ground":
-            return ground_frame(_as_points(points), gravity)
-        return GroundFrame.identity()
+        (``gravity``: 3x3 sensor -> gravity-aligned rotation, if known) or the sensor's own.
+        ``scan``: the keyframe's own points when ``points`` holds its trail as well: the sensor's
+        field of view is read from them (``features.mirror_field_of_view``)."""
+        if self.config.grid.frame != "ground":
+            return GroundFrame.identity()
+        frame = ground_frame(_as_points(points), gravity)
+        if self.config.features.mirror_field_of_view:
+            frame = replace(frame, field_top=field_top(points if scan is None else scan))
+        return frame
 
-    def describe(self, points: np.ndarray, gravity: np.ndarray | None = None) -> np.ndarray:
+    def describe(self, points: np.ndarray, gravity: np.ndarray | None = None,
+                 scan: np.ndarray | None = None) -> np.ndarray:
         """Descriptor (d,) float32 of a scan given as (N, 3+) sensor-frame points (extra
-        columns ignored); see :meth:`frame` for ``gravity``."""
+        columns ignored); see :meth:`frame` for ``gravity`` and ``scan``."""
         points = _as_points(points)
-        frame = self.frame(points, gravity)
+        frame = self.frame(points, gravity, scan)
         if self._height_map_only:  # levelled inside the height map's pass
             return self.describe_views(points, np.zeros((1, 2)), frame)[0]
         return self.describe_framed(points if self.config.grid.frame == "sensor" else frame.apply(points))

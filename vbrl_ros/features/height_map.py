@@ -17,6 +17,8 @@ column, not on the scan: :func:`.height_views.view_table` computes it once for e
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -39,16 +41,18 @@ def _column_centre(column, side, cell, reach):
 
 
 @njit(cache=True, nogil=True)
-def height_cells(points, rotation, lift, reach, cell, z_edges, drop_clutter=False):
+def height_cells(points, rotation, lift, reach, cell, z_edges, drop_clutter=False, half_turn=None, top_tan=np.inf):
     """The scan as a height map: ``(cells, 2)`` x, y of each occupied column centre,
     ``(cells,)`` its layer-relative top height, ``(cells,)`` its layer and ``(cells,)`` its
     column (``iy * side + ix``, see :func:`map_side`).
 
     Points are taken into the grid frame on the fly, ``R p + (0, 0, lift)`` (the scan's
     ground frame; identity and 0 for points already in it). Columns are ``cell`` metres
-    wide, within ``reach`` metres of the origin in x and y; points outside the layers
-    (and non-finite ones) are dropped. ``drop_clutter``: lone tops near the sensor are taken
-    for rain or snow (:mod:`.weather_clutter`) and each such column keeps its next-highest point.
+    wide, within ``reach`` metres of the origin in x and y; points outside the layers (and
+    non-finite ones) are dropped, and so are those a tilted sensor would not see turned half a
+    turn (``half_turn`` and ``top_tan``, :mod:`.field_of_view`; None: all kept).
+    ``drop_clutter``: lone tops near the sensor are taken for rain or snow
+    (:mod:`.weather_clutter`) and each such column keeps its next-highest point.
     """
     layers = z_edges.shape[0] - 1
     side = int(2.0 * reach / cell) + 1
@@ -61,12 +65,21 @@ def height_cells(points, rotation, lift, reach, cell, z_edges, drop_clutter=Fals
     # each column's next-highest point, which only dropping clutter reads
     second = np.full(columns + 1 if drop_clutter else 1, -1.0)
     R = rotation
+    # a tilted sensor's field of view mirrored (.field_of_view): a point is kept only where the
+    # sensor turned half a turn (``half_turn``, sensor frame) sees it below ``top_tan``
+    mirror = half_turn is not None and top_tan < np.inf
+    M = np.eye(3) if half_turn is None else half_turn
     for i in range(points.shape[0]):
         px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
         x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz
         y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz
         z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + lift
         kept = (abs(x) < reach) & (abs(y) < reach) & (z >= z_edges[0]) & (z < z_edges[layers])
+        if mirror:  # the same for every point: predicted
+            tx = M[0, 0] * px + M[0, 1] * py + M[0, 2] * pz
+            ty = M[1, 0] * px + M[1, 1] * py + M[1, 2] * pz
+            tz = M[2, 0] * px + M[2, 1] * py + M[2, 2] * pz
+            kept = kept & (tz <= top_tan * math.sqrt(tx * tx + ty * ty))
         layer = 0
         for e in range(1, layers):
             if z >= z_edges[e]:

@@ -15,6 +15,7 @@ columns' voxels from the table: the voxels the per-column kernels give, so the s
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 
@@ -24,6 +25,7 @@ from numba import njit
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
 from vbrl_ros.features.bev_spectrum import SpectrumSampler
 from vbrl_ros.features.blind_wedges import azimuth_bins, hide_mirrored_wedges
+from vbrl_ros.features.field_of_view import half_turn_in_sensor, mirrors
 from vbrl_ros.features.height_map import (
     CELL_M,
     MARGIN_M,
@@ -120,8 +122,12 @@ class HeightMapModalities:
     def cells(self, points: np.ndarray, frame: GroundFrame | None = None) -> HeightCells:
         """The height map of (N, 3+) points, taken into ``frame`` (default: already in it)."""
         frame = frame or GroundFrame.identity()
+        half_turn, top_tan = np.eye(3), np.inf
+        if self.config.features.mirror_field_of_view and mirrors(frame.rotation, frame.field_top):
+            half_turn, top_tan = half_turn_in_sensor(frame.rotation), math.tan(frame.field_top)
         cells = HeightCells(*height_cells(points, frame.rotation, float(frame.height), self.reach, CELL_M,
-                                          self.z_edges, self.config.features.drop_weather_clutter))
+                                          self.z_edges, self.config.features.drop_weather_clutter,
+                                          half_turn, top_tan))
         if self.config.features.mirror_blind_wedges:
             keep = hide_mirrored_wedges(cells.xy, column_azimuth_bins(self.reach)[cells.column])
             if not keep.all():  # most scans see all round: nothing to copy

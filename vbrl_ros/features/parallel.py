@@ -28,9 +28,22 @@ def init_worker(config_dict: dict) -> None:
     _worker_featurizer = Featurizer(VBRLConfig.from_dict(config_dict))
 
 
-def describe_in_worker(points: np.ndarray) -> np.ndarray:
+#: A keyframe to describe: its points, or (its points, the cloud it is described by: with its trail).
+Keyframe = np.ndarray | tuple[np.ndarray, np.ndarray]
+
+
+def describe_keyframe(featurizer: Featurizer, keyframe: Keyframe) -> np.ndarray:
+    """``featurizer``'s descriptor of ``keyframe``; with a trail, the sensor's field of view is read
+    from the keyframe's own points."""
+    if isinstance(keyframe, tuple):
+        scan, cloud = keyframe
+        return featurizer.describe(cloud, scan=scan)
+    return featurizer.describe(keyframe)
+
+
+def describe_in_worker(keyframe: Keyframe) -> np.ndarray:
     assert _worker_featurizer is not None
-    return _worker_featurizer.describe(points)
+    return describe_keyframe(_worker_featurizer, keyframe)
 
 
 def default_workers() -> int:
@@ -38,7 +51,7 @@ def default_workers() -> int:
 
 
 def featurize(
-    scans: Iterable[np.ndarray],
+    scans: Iterable[Keyframe],
     config: VBRLConfig,
     *,
     total: int | None = None,
@@ -46,7 +59,7 @@ def featurize(
     progress: bool = True,
     description: str = "featurizing",
 ) -> np.ndarray:
-    """Raw descriptors (n, d) float32 of the scans, computed in worker processes.
+    """Raw descriptors (n, d) float32 of the scans (:data:`Keyframe`), computed in worker processes.
 
     The caller's process reads the scans (I/O is sequential in bags) while
     ``workers`` processes featurize them; results keep the input order.
@@ -57,7 +70,7 @@ def featurize(
     out: list[np.ndarray] = []
     try:
         if workers <= 1:
-            results: Iterator[np.ndarray] = map(featurizer.describe, scans)
+            results: Iterator[np.ndarray] = (describe_keyframe(featurizer, scan) for scan in scans)
             for row in results:
                 out.append(row)
                 bar.update()

@@ -168,8 +168,3 @@ def with_trail(scans: Iterable[np.ndarray], poses: np.ndarray | None,
     trail = Trail(reach_m if poses is not None else 0.0)
     for k, points in enumerate(scans):
         yield points, trail.cloud(points, None if poses is None else poses[k])
-
-
-def trail_clouds(scans: Iterable[np.ndarray], poses: np.ndarray | None, reach_m: float) -> Iterator[np.ndarray]:
-    """The clouds ``scans`` are described by (:func:`with_trail`)."""
-    return (cloud for _, cloud in with_trail(scans, poses, reach_m))

@@ -56,6 +56,9 @@ class GroundFrame:
     rotation: np.ndarray  # (3, 3)
     height: float
     found: bool  # False: no ground plane was found (see the module docstring)
+    # the top of the sensor's field of view (elevation, radians, its own frame) where the height
+    # map mirrors it (vbrl_ros.features.field_of_view); NaN: not read
+    field_top: float = math.nan
 
     @classmethod
     def identity(cls) -> "GroundFrame":

@@ -20,7 +20,7 @@ import numpy as np
 
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.features.parallel import featurize
-from vbrl_ros.features.trail import trail_clouds
+from vbrl_ros.features.trail import with_trail
 from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
 from vbrl_ros.training.fit import TrainingResult, fit_model
 from vbrl_ros.training.presets import RECOGNITION_TRANSLATION_SEARCH_M, recognition_config
@@ -70,7 +70,7 @@ def simulated_recognition_data(towns: tuple[SimulatedTown, ...], config: VBRLCon
                             blocked_azimuth_deg=town_spec.blocked_azimuth_deg)
         run = simulate_run(town, route, lidar, town_spec.scenario, seed=town_spec.run_seed)
         name = f"town{town_spec.town_seed}_{town_spec.sensor_height_m:g}m_{town_spec.beams}beams"
-        scans = trail_clouds((scan.points for scan in run), run.poses, config.features.trail_m)
+        scans = with_trail((scan.points for scan in run), run.poses, config.features.trail_m)
         descriptors = featurize(scans, config, total=len(run),
                                 progress=progress, description=f"simulating {name}")
         out.append((name, descriptors, run.poses[:, :3, 3]))

@@ -44,7 +44,7 @@ from vbrl_ros.config import VBRLConfig
 from vbrl_ros.datasets.keyframe_selection import select_keyframes
 from vbrl_ros.datasets.registry import open_source
 from vbrl_ros.features.featurizer import Featurizer
-from vbrl_ros.features.parallel import bounded_map, default_workers, describe_in_worker, init_worker
+from vbrl_ros.features.parallel import bounded_map, default_workers, describe_in_worker, describe_keyframe, init_worker
 from vbrl_ros.model.gram import GramAccumulator, GramStats
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.model.solver import solve_vbrl
@@ -215,7 +215,7 @@ def stream_moments(
                 indices = select_keyframes(source, distance=keyframe_distance, every=every)
                 scans = described_clouds(source, indices, config)
                 rows = (bounded_map(pool, describe_in_worker, scans, 4 * workers) if pool
-                        else map(featurizer.describe, scans))
+                        else (describe_keyframe(featurizer, scan) for scan in scans))
                 bar = tqdm(total=len(indices), desc=f"streaming {source.name}", unit="scan",
                            disable=not progress, leave=False)
                 label = scenario_names.index(name)

@@ -13,7 +13,7 @@ from vbrl_ros.datasets.base import ScanSource
 from vbrl_ros.datasets.keyframe_selection import keyframe_poses, select_keyframes, source_points
 from vbrl_ros.datasets.registry import open_source
 from vbrl_ros.features.parallel import featurize
-from vbrl_ros.features.trail import trail_clouds
+from vbrl_ros.features.trail import with_trail
 
 
 @dataclass
@@ -28,9 +28,10 @@ class TrainingData:
     keyframe_index: np.ndarray  # (n,) scan index inside its source
 
 
-def described_clouds(source: ScanSource, indices: Sequence[int], config: VBRLConfig) -> Iterator[np.ndarray]:
-    """The clouds the keyframes ``indices`` of ``source`` are described by: each with its trail."""
-    return trail_clouds(source_points(source, indices), keyframe_poses(source, indices), config.features.trail_m)
+def described_clouds(source: ScanSource, indices: Sequence[int],
+                     config: VBRLConfig) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(points, the cloud it is described by: with its trail) of the keyframes ``indices`` of ``source``."""
+    return with_trail(source_points(source, indices), keyframe_poses(source, indices), config.features.trail_m)
 
 
 def source_labels(paths: list[Path], labels: list[str] | None) -> list[str]:
