@@ -10,6 +10,7 @@ from vbrl_ros.config import FeatureConfig, VBRLConfig, VoxelGridConfig
 from vbrl_ros.datasets.mount_tilt import mount_rotation
 from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.features.field_of_view import field_top, mirrors, seen_both_ways
+from vbrl_ros.features.parallel import describe_keyframe
 
 GRID = VoxelGridConfig(kind="polar", rings=20, sectors=30, max_range=40.0, z_edges=(0.0, 20.0), frame="ground")
 
@@ -123,3 +124,15 @@ def test_the_setting_needs_height_maps_on_a_levelled_grid():
     assert "mirror_field_of_view" not in FeatureConfig().to_dict()  # older models keep their identity
     on = FeatureConfig(modalities=("height",), mirror_field_of_view=True)
     assert VBRLConfig.from_dict(VBRLConfig(grid=GRID, features=on).to_dict()).features.mirror_field_of_view
+
+
+def test_the_field_of_view_is_read_from_the_keyframe_not_its_trail(town_scan):
+    tilted = town_scan @ mount_rotation(5.0, 10.0)
+    # earlier keyframes merged in: near points seen from farther back rise above this sensor's top
+    trail = np.array([[6.0 * math.cos(a), 6.0 * math.sin(a), 4.0] for a in np.linspace(0, 2 * np.pi, 2000)])
+    cloud = np.vstack([tilted, trail @ mount_rotation(5.0, 10.0)])
+    f = featurizer(True)
+    assert f.frame(cloud, scan=tilted).field_top == field_top(tilted) < f.frame(cloud).field_top
+    by_scan = describe_keyframe(f, (tilted, cloud))
+    np.testing.assert_array_equal(by_scan, f.describe(cloud, scan=tilted))
+    assert not np.array_equal(by_scan, f.describe(cloud))
