@@ -4,6 +4,7 @@ import pytest
 from vbrl_ros.detection.corroboration import (
     CORROBORATION_SLACK_M,
     RecentRegistrations,
+    agrees_with_odometry,
     corroborates,
     registered_position,
 )
@@ -157,3 +158,27 @@ def test_clearing_the_database_forgets_the_last_keyframes_pools_and_registration
     assert len(found.sequence) and len(found.recent)
     found.clear_database()
     assert len(database) == 0 and len(found.sequence) == 0 and len(found.recent) == 0
+
+
+def test_within_its_session_a_registration_agrees_with_odometry_up_to_its_drift():
+    assert agrees_with_odometry(at(7.0), at(7.0 + CORROBORATION_SLACK_M + 1.9), 20.0, 0.1)
+    assert not agrees_with_odometry(at(7.0), at(7.0 + CORROBORATION_SLACK_M + 2.1), 20.0, 0.1)
+    assert agrees_with_odometry(at(0.0), at(50.0), 20.0, 0.0)  # odometry_drift 0: odometry not trusted
+    assert agrees_with_odometry(at(0.0), at(50.0), float("nan"), 0.1)
+    assert agrees_with_odometry(at(0.0), np.full(3, np.nan), 20.0, 0.1)
+
+
+@pytest.mark.parametrize("odometry_drift, published", [(0.1, False), (0.0, True)])
+def test_a_weak_registration_in_its_own_session_that_odometry_contradicts_is_not_published(
+        first_drive, odometry_drift, published):
+    # the first drive goes on: back at 0.3-2.3 m by its scans, 7 m on by its odometry, a few metres of
+    # walking after it passed there. The registrations agree with one another, not with odometry; with
+    # odometry_drift 0 odometry is not trusted, and they are published as across sessions
+    model, database, scan = first_drive
+    on = LoopClosureDetector(model, database, DetectorSettings(session="first", odometry_drift=odometry_drift,
+                                                               **WEAK))
+    results = [on.process_keyframe(scan(x, 5), 100.0 + i, pose(x + 7.0)) for i, x in enumerate((0.3, 1.3, 2.3))]
+    third = results[2]
+    assert third.weak and third.corroborated == int(published) and len(third.closures) == int(published)
+    if published:
+        assert third.closures[0].match_id in (1, 2, 3)

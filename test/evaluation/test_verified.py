@@ -276,3 +276,25 @@ def test_the_node_reading_publishes_weak_registrations_the_queries_before_corrob
     moved[2, 0, 0, 3] = -4.0
     wrong = VerifiedCandidates(fitness, verified.rejection, moved)
     assert node_decision(candidates, wrong, INF, 0.2, 2, corroboration)[0][:, 0].tolist() == [-1, -1, -1, -1, 13]
+
+
+def test_within_one_session_a_weak_registration_must_also_agree_with_odometry():
+    # P1 along a corridor, a keyframe a metre: keyframes 10-12 register weakly, consistently, onto 3-5,
+    # as if the sensor stood there; odometry says 7 m on, after 7 m of walking: 1 m + 10 % of it allowed
+    poses = np.tile(np.eye(4), (13, 1, 1))
+    poses[:, 0, 3] = np.arange(13.0)
+    indices = np.zeros((13, 1), dtype=np.int64)
+    indices[10:, 0] = [3, 4, 5]
+    fitness = np.zeros((13, 1))
+    fitness[10:, 0] = 0.18
+    verified = VerifiedCandidates(fitness, np.full((13, 1), None, dtype=object), np.tile(np.eye(4), (13, 1, 1, 1)))
+    candidates = Candidates(indices, np.ones((13, 1)))
+
+    def published(**odometry):
+        corroboration = Corroboration(poses[:, :3, 3], poses, 0.16, **odometry)
+        return node_decision(candidates, verified, INF, 0.2, 1, corroboration)[0][10:, 0].tolist()
+
+    assert published() == [-1, -1, 5]  # across sessions (no paths) odometry cannot say
+    assert published(paths=np.arange(13.0), odometry_drift=0.1) == [-1, -1, -1]
+    assert published(paths=np.arange(13.0), odometry_drift=0.0) == [-1, -1, 5]  # the gate off
+    assert published(paths=np.arange(13.0) * 10, odometry_drift=0.1) == [-1, -1, 5]  # 70 m of walking: 8 m

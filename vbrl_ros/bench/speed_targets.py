@@ -110,7 +110,7 @@ def sparse_keyframes_with_trail(featurizer: Featurizer, scan: np.ndarray, offset
     def next_keyframe() -> None:
         pose[0, 3] += TRAIL_SPACING_M
         cloud = trail.cloud(scan, pose)
-        featurizer.describe_views(cloud, offsets, featurizer.frame(cloud))
+        featurizer.describe_views(cloud, offsets, featurizer.frame(cloud, scan=scan))
 
     return next_keyframe
 

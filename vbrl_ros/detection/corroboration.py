@@ -13,6 +13,13 @@ within the distance odometry moved since plus :data:`CORROBORATION_SLACK_M` of w
 puts the query: three registrations in a row agree. Two were not enough: in a small courtyard
 two consecutive keyframes registered 4.5 m off the same way. Poses are odometry's, each in its
 own session's frame, so it works across sessions too; without poses it never applies.
+
+Three in a row can still slide together along a corridor or a facade that repeats. Within the
+query's own session odometry knows where the sensor was, up to its drift: there a weak
+registration must also put the sensor within :data:`CORROBORATION_SLACK_M` plus
+``odometry_drift`` times the path driven since the match of where odometry does
+(:func:`agrees_with_odometry`; the forward-looking hand-held recording with drifting odometry:
+three keyframes registered 7 m along a corridor from where its poses put them).
 """
 
 from __future__ import annotations
@@ -36,6 +43,17 @@ def registered_position(match_pose: np.ndarray, T_query_match: np.ndarray) -> np
     T_world_lidar of the match) times the registered sensor-to-sensor transform (which maps
     match-frame points into the query frame), (3,)."""
     return (np.asarray(match_pose, float) @ np.linalg.inv(np.asarray(T_query_match, float)))[:3, 3]
+
+
+def agrees_with_odometry(registered: np.ndarray, position: np.ndarray, path_m: float, odometry_drift: float) -> bool:
+    """Whether a registration to the query's own session, which put the query sensor at
+    ``registered``, agrees with odometry, which puts it at ``position`` ``path_m`` metres of driving
+    after the match: within :data:`CORROBORATION_SLACK_M` plus ``odometry_drift`` times the path.
+    True where odometry cannot say (``odometry_drift`` 0, unknown positions or path)."""
+    apart = float(np.linalg.norm(np.asarray(registered, float) - np.asarray(position, float)))
+    if odometry_drift <= 0 or not (np.isfinite(apart) and np.isfinite(path_m)):
+        return True
+    return bool(apart <= CORROBORATION_SLACK_M + odometry_drift * abs(path_m))
 
 
 def corroborates(position: np.ndarray, query_step_m: float, earlier_position: np.ndarray) -> bool:

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from vbrl_ros.detection.corroboration import RecentRegistrations, registered_position
+from vbrl_ros.detection.corroboration import RecentRegistrations, agrees_with_odometry, registered_position
 from vbrl_ros.detection.database import Candidate, KeyframeDatabase
 from vbrl_ros.detection.odometry_gate import SPARE_FACTOR, kept_with_spares, odometry_heading, too_far_by_odometry
 from vbrl_ros.detection.registration import (
@@ -200,7 +200,8 @@ class LoopClosureDetector:
         for weak, at in registrations[len(result.closures):]:
             if len(result.closures) + len(accepted) >= self.settings.max_closures:
                 break
-            if self.recent.corroborated(retrieval.keyframe_id, retrieval.session, here, weak.match_session, at):
+            if (self.recent.corroborated(retrieval.keyframe_id, retrieval.session, here, weak.match_session, at)
+                    and self._agrees_with_odometry(retrieval, weak, at, here)):
                 accepted.append(weak)
         self.recent.remember(retrieval.keyframe_id, retrieval.session, here,
                              [(c.match_session, at) for c, at in registrations])
@@ -212,6 +213,18 @@ class LoopClosureDetector:
             del rejections["low fitness"]
         return replace(result, closures=result.closures + accepted, rejections=rejections,
                        corroborated=len(accepted))
+
+    def _agrees_with_odometry(self, retrieval: Retrieval, weak: LoopClosure, at: np.ndarray,
+                              here: np.ndarray) -> bool:
+        """A weak registration to the query's own session also agrees with odometry (corroboration)."""
+        if weak.match_session != retrieval.session:
+            return True
+        try:
+            _, path = self.database.odometry_apart(self.database.index_of(retrieval.keyframe_id),
+                                                   self.database.index_of(weak.match_id))
+        except KeyError:  # cleared since
+            return False
+        return agrees_with_odometry(at, here, path, self.settings.odometry_drift)
 
     def retrieve(
         self, points: np.ndarray, stamp: float, pose: np.ndarray | None = None,

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from vbrl_ros.detection.corroboration import RecentRegistrations, registered_position
+from vbrl_ros.detection.corroboration import RecentRegistrations, agrees_with_odometry, registered_position
 from vbrl_ros.detection.detector import (
     WIDER_RETRY_FITNESS,
     closure_rejection,
@@ -274,6 +274,10 @@ class Corroboration:
     query_positions: np.ndarray  # (n_queries, 3)
     database_poses: np.ndarray  # (n_database, 4, 4) T_world_lidar
     fitness: float
+    # P1, one session: metres driven up to each keyframe, for a weak registration to agree with odometry
+    # within odometry_drift of the path (corroboration.agrees_with_odometry); None across sessions
+    paths: np.ndarray | None = None
+    odometry_drift: float = 0.0
 
 
 def node_decision(candidates: Candidates, verified: VerifiedCandidates, distance_threshold: float,
@@ -322,7 +326,10 @@ def _corroborated(published: np.ndarray, slot: np.ndarray, stop: np.ndarray, ind
         at = {r: registered_position(database[indices[q, r]], transforms[q, r]) for r in slots}
         if out[q] < 0:
             for r in weak_slots:
-                if recent.corroborated(q, "query", queries[q], "database", at[r]):
+                if recent.corroborated(q, "query", queries[q], "database", at[r]) and (
+                        corroboration.paths is None or agrees_with_odometry(
+                            at[r], queries[q], corroboration.paths[q] - corroboration.paths[indices[q, r]],
+                            corroboration.odometry_drift)):
                     out[q] = indices[q, r]
                     break
         recent.remember(q, "query", queries[q], [("database", at[r]) for r in slots])

@@ -123,7 +123,9 @@ def verified_output(inputs: VerificationInputs, results: RetrievalResults, rule:
     best = best_verified(candidates, verified)
     swept = score(RetrievalResults(*best, results.database_limit))
     points = {}
-    corroboration = None if inputs.poses is None else Corroboration(*inputs.poses, rule.corroborated_fitness)
+    corroboration = None if inputs.poses is None else Corroboration(
+        *inputs.poses, rule.corroborated_fitness, None if inputs.odometry is None else inputs.odometry.paths,
+        rule.odometry_drift)
     for fitness in fitnesses:
         decided, decision = node_decision(candidates, verified, distance_threshold, fitness, k, corroboration)
         accepted = int(np.isfinite(decision).sum())
