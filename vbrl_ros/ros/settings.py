@@ -65,8 +65,10 @@ DESCRIPTIONS: dict[str, str] = {
                             "accepted when two of the three keyframes before it were registered, at least "
                             "this well, to the same session and there agree with it: where each "
                             "registration puts the sensor lies within the distance odometry moved between "
-                            "them, plus 1 m (a sparse sensor's right closures along a stretch). "
-                            ">= min_fitness: off; without odometry it never applies.",
+                            "them, plus 1 m (a sparse sensor's right closures along a stretch); in its own "
+                            "session it must also lie where odometry allows (1 m plus odometry_drift "
+                            "times the path since the match). >= min_fitness: off; without odometry it "
+                            "never applies.",
     "max_closure_distance": "verified closures between sensors farther apart than this many metres "
                             "are rejected: the registration may be right, but they are not one place.",
     "verification_voxel": "voxel size in metres of the stored clouds and of their registration, 0.05 to 10.",
