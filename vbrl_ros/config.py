@@ -223,20 +223,14 @@ class FeatureConfig:
             "features.normalise",
             f"must be true or false, got {self.normalise!r}",
         )
-        _require(
-            isinstance(self.mirror_blind_wedges, bool)
-            and (not self.mirror_blind_wedges or set(self.modalities) <= set(HEIGHT_MAP_MODALITIES)),
-            "features.mirror_blind_wedges",
-            f"must be true or false, and true only with height-map modalities "
-            f"({', '.join(HEIGHT_MAP_MODALITIES)}), got {self.mirror_blind_wedges!r}",
-        )
-        _require(
-            isinstance(self.mirror_field_of_view, bool)
-            and (not self.mirror_field_of_view or set(self.modalities) <= set(HEIGHT_MAP_MODALITIES)),
-            "features.mirror_field_of_view",
-            f"must be true or false, and true only with height-map modalities "
-            f"({', '.join(HEIGHT_MAP_MODALITIES)}), got {self.mirror_field_of_view!r}",
-        )
+        for name in ("mirror_blind_wedges", "mirror_field_of_view"):  # both act on the height map
+            value = getattr(self, name)
+            _require(
+                isinstance(value, bool) and (not value or set(self.modalities) <= set(HEIGHT_MAP_MODALITIES)),
+                f"features.{name}",
+                f"must be true or false, and true only with height-map modalities "
+                f"({', '.join(HEIGHT_MAP_MODALITIES)}), got {value!r}",
+            )
         _require(
             isinstance(self.drop_weather_clutter, bool)
             and (not self.drop_weather_clutter or bool(set(self.modalities) & set(HEIGHT_MAP_MODALITIES))),
