@@ -33,7 +33,7 @@ import numpy as np
 
 from vbrl_ros.config import HEIGHT_MAP_MODALITIES, MODALITY_NAMES, PAPER_MODALITIES, VBRLConfig
 from vbrl_ros.features.blind_wedges import hide_mirrored_wedges
-from vbrl_ros.features.field_of_view import field_top
+from vbrl_ros.features.field_of_view import field_top, tilted
 from vbrl_ros.features.height_map import CELL_M
 from vbrl_ros.features.height_views import HeightMapModalities, map_reach
 from vbrl_ros.features.hog import hog_batch
@@ -178,7 +178,7 @@ class Featurizer:
         if self.config.grid.frame != "ground":
             return GroundFrame.identity()
         frame = ground_frame(_as_points(points), gravity)
-        if self.config.features.mirror_field_of_view:
+        if self.config.features.mirror_field_of_view and tilted(frame.rotation):  # level: nothing to mirror
             frame = replace(frame, field_top=field_top(points if scan is None else scan))
         return frame
 

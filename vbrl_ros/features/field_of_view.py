@@ -50,10 +50,15 @@ def tilt_deg(rotation: np.ndarray) -> float:
     return math.degrees(math.acos(float(np.clip(np.asarray(rotation, np.float64)[2, 2], -1.0, 1.0))))
 
 
+def tilted(rotation: np.ndarray) -> bool:
+    """Whether a sensor levelled by ``rotation`` is tilted enough for its field to be mirrored."""
+    return tilt_deg(rotation) >= MIN_TILT_DEG
+
+
 def mirrors(rotation: np.ndarray, top: float) -> bool:
     """Whether a sensor levelled by ``rotation`` whose field of view tops out at ``top``
     (radians, :func:`field_top`) has its field mirrored: tilted, and not a wide one."""
-    return bool(np.isfinite(top) and math.degrees(top) < WIDE_TOP_DEG and tilt_deg(rotation) >= MIN_TILT_DEG)
+    return bool(np.isfinite(top) and math.degrees(top) < WIDE_TOP_DEG and tilted(rotation))
 
 
 def half_turn_in_sensor(rotation: np.ndarray) -> np.ndarray:

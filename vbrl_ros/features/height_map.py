@@ -41,7 +41,7 @@ def _column_centre(column, side, cell, reach):
 
 
 @njit(cache=True, nogil=True)
-def height_cells(points, rotation, lift, reach, cell, z_edges, drop_clutter=False, half_turn=None, top_tan=np.inf):
+def height_cells(points, rotation, lift, reach, cell, z_edges, drop_clutter, half_turn, top_tan):
     """The scan as a height map: ``(cells, 2)`` x, y of each occupied column centre,
     ``(cells,)`` its layer-relative top height, ``(cells,)`` its layer and ``(cells,)`` its
     column (``iy * side + ix``, see :func:`map_side`).
@@ -50,7 +50,7 @@ def height_cells(points, rotation, lift, reach, cell, z_edges, drop_clutter=Fals
     ground frame; identity and 0 for points already in it). Columns are ``cell`` metres
     wide, within ``reach`` metres of the origin in x and y; points outside the layers (and
     non-finite ones) are dropped, and so are those a tilted sensor would not see turned half a
-    turn (``half_turn`` and ``top_tan``, :mod:`.field_of_view`; None: all kept).
+    turn (``half_turn`` and ``top_tan``, :mod:`.field_of_view`; ``top_tan`` inf: all kept).
     ``drop_clutter``: lone tops near the sensor are taken for rain or snow
     (:mod:`.weather_clutter`) and each such column keeps its next-highest point.
     """
@@ -67,8 +67,8 @@ def height_cells(points, rotation, lift, reach, cell, z_edges, drop_clutter=Fals
     R = rotation
     # a tilted sensor's field of view mirrored (.field_of_view): a point is kept only where the
     # sensor turned half a turn (``half_turn``, sensor frame) sees it below ``top_tan``
-    mirror = half_turn is not None and top_tan < np.inf
-    M = np.eye(3) if half_turn is None else half_turn
+    mirror = top_tan < np.inf
+    M = half_turn
     for i in range(points.shape[0]):
         px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
         x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz
