@@ -321,7 +321,8 @@ def verify_candidates(retrieval: Retrieval, settings: DetectorSettings) -> Keyfr
     degenerate: list[int] = []
     weak: list[LoopClosure] = []
     # the query's thinning, ground, KD-tree and heading image are prepared once for all candidates
-    verifier = query_verifier(retrieval.cloud, settings) if settings.verify and retrieval.candidates else None
+    verifier = (query_verifier(retrieval.cloud, settings, sensor=retrieval.frame)
+                if settings.verify and retrieval.candidates else None)
     for k, candidate in enumerate(retrieval.candidates):
         if len(closures) >= settings.max_closures:
             break
@@ -337,7 +338,8 @@ def verify_candidates(retrieval: Retrieval, settings: DetectorSettings) -> Keyfr
         if settings.verify:
             # no initial guess: the verification searches every heading itself, as the
             # recogniser's yaw is often a symmetric place's other heading
-            check = verifier.verify(retrieval.candidate_clouds[k], expected_yaw=candidate.odometry_yaw)
+            check = verifier.verify(retrieval.candidate_clouds[k], expected_yaw=candidate.odometry_yaw,
+                                   sensor=retrieval.candidate_frames[k])
             T, covariance = to_sensor_frames(check, retrieval.frame, retrieval.candidate_frames[k])
             reason = closure_rejection(check, T, settings)
             closure = LoopClosure(
@@ -370,11 +372,12 @@ def submap_gap_s(settings: DetectorSettings) -> float:
     return 0.5 * settings.exclude_recent_s
 
 
-def query_verifier(cloud: np.ndarray, settings: DetectorSettings, max_threads: int = 0) -> QueryVerifier:
+def query_verifier(cloud: np.ndarray, settings: DetectorSettings, max_threads: int = 0,
+                   sensor: np.ndarray | None = None) -> QueryVerifier:
     """The verifier of one query's candidates under ``settings``: at their voxel, its heading search
-    no farther than a closure they accept."""
+    no farther than a closure they accept; ``sensor``: the query's frame (sensor -> grid)."""
     return QueryVerifier(cloud, voxel_size=settings.verification_voxel, max_threads=max_threads,
-                         max_closure_distance=settings.max_closure_distance)
+                         max_closure_distance=settings.max_closure_distance, sensor=sensor)
 
 
 def verification_cloud(points: np.ndarray, frame: np.ndarray, voxel: float) -> np.ndarray:

@@ -77,18 +77,23 @@ def thinned(points: np.ndarray, voxel: float) -> np.ndarray:
 
 class PreparedCloud:
     """A cloud for verification at ``voxel`` (KISS-ICP keeps the scan at voxel / 2: a no-op for a
-    cloud from :func:`~vbrl_ros.detection.registration.downsample_for_storage`)."""
+    cloud from :func:`~vbrl_ros.detection.registration.downsample_for_storage`). ``sensor``: 4x4,
+    the keyframe's sensor -> the cloud's frame (its levelling frame), which tells the band of
+    elevations it saw (:class:`~vbrl_ros.detection.visibility.FieldOfView`); None: unknown."""
 
-    def __init__(self, points: np.ndarray, voxel: float) -> None:
+    def __init__(self, points: np.ndarray, voxel: float, sensor: np.ndarray | None = None) -> None:
         self.voxel = float(voxel)
+        self.sensor = sensor
         self.points = thinned(points, 0.5 * self.voxel)
         self.ground = ground_mask(self.points)
 
     @classmethod
-    def of_thinned(cls, points: np.ndarray, voxel: float, ground: np.ndarray) -> PreparedCloud:
+    def of_thinned(cls, points: np.ndarray, voxel: float, ground: np.ndarray,
+                   sensor: np.ndarray | None = None) -> PreparedCloud:
         """(N, 3) float64 finite points taken as they are, with their ``ground`` (bool (N,))."""
         cloud = cls.__new__(cls)
         cloud.voxel = float(voxel)
+        cloud.sensor = sensor
         cloud.points = np.ascontiguousarray(points, dtype=np.float64)
         cloud.ground = np.asarray(ground, dtype=bool)
         return cloud
@@ -124,8 +129,9 @@ class PreparedCloud:
 
     @cached_property
     def horizon(self) -> Horizon:
-        """How far this cloud's sensor saw in each direction, to a voxel."""
-        return Horizon(self.points, self.voxel)
+        """How far this cloud's sensor saw in each direction (and, with its pose, between which
+        elevations), to a voxel."""
+        return Horizon(self.points, self.voxel, self.sensor)
 
     @cached_property
     def plan(self) -> PlanView:

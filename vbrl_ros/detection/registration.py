@@ -177,11 +177,13 @@ def verify_loop(
 class QueryVerifier:
     """:func:`verify_loop` of one query against any number of candidates: the query's thinning,
     ground, registration source, KD-tree and heading-search image are computed once (on first
-    use), not per candidate. Arguments as :func:`verify_loop`'s."""
+    use), not per candidate. Arguments as :func:`verify_loop`'s; ``sensor``: the query's, as
+    :class:`PreparedCloud` takes it."""
 
     def __init__(self, query_points: np.ndarray, *, voxel_size: float = 1.0,
                  max_correspondence_distance: float | None = None, max_iterations: int = 500,
-                 max_threads: int = 0, max_closure_distance: float | None = None) -> None:
+                 max_threads: int = 0, max_closure_distance: float | None = None,
+                 sensor: np.ndarray | None = None) -> None:
         if voxel_size <= 0:
             raise ValueError(f"voxel_size must be positive, got {voxel_size}")
         threshold = voxel_size if max_correspondence_distance is None else max_correspondence_distance
@@ -193,7 +195,7 @@ class QueryVerifier:
         # the heading search looks as far as a closure may be, and a margin beyond
         self.search_radius = MAX_SHIFT_M if max_closure_distance is None else (
             float(max_closure_distance) + SEARCH_MARGIN_M)
-        self.query = PreparedCloud(query_points, self.voxel)
+        self.query = PreparedCloud(query_points, self.voxel, sensor)
         self.registration = Registration(max_num_iterations=int(max_iterations),
                                          convergence_criterion=_CONVERGENCE_CRITERION,
                                          max_num_threads=int(max_threads))
@@ -203,18 +205,20 @@ class QueryVerifier:
                                   convergence_criterion=_CONVERGENCE_CRITERION, max_num_threads=int(max_threads))
 
     def verify(self, match: np.ndarray | PreparedCloud, *, initial_guess: np.ndarray | None = None,
-               expected_yaw: float | None = None, timings: dict[str, float] | None = None) -> Verification:
+               expected_yaw: float | None = None, timings: dict[str, float] | None = None,
+               sensor: np.ndarray | None = None) -> Verification:
         """Register the query onto ``match`` ((M, 3) points, or a :class:`PreparedCloud` at this
         verifier's voxel that a caller keeps for a keyframe it verifies often). ``expected_yaw``
         (radians; None or NaN: unknown): roughly the yaw of ``T_query_match``, as odometry knows it
         (:func:`~vbrl_ros.detection.odometry_gate.odometry_heading`); the heading search then
-        keeps to overlays within :data:`EXPECTED_YAW_TOLERANCE_DEG` of it."""
+        keeps to overlays within :data:`EXPECTED_YAW_TOLERANCE_DEG` of it. ``sensor``: the match's
+        sensor pose when ``match`` is points, as :class:`PreparedCloud` takes it."""
         laps = _Laps(timings)
         guess = None if initial_guess is None else np.asarray(initial_guess, dtype=np.float64)
         if guess is not None and (guess.shape != (4, 4) or not np.all(np.isfinite(guess))):
             raise ValueError("initial_guess must be a finite 4x4 matrix")
         if not isinstance(match, PreparedCloud):
-            match = PreparedCloud(match, self.voxel)
+            match = PreparedCloud(match, self.voxel, sensor)
         elif match.voxel != self.voxel:
             raise ValueError(f"the match was prepared at voxel {match.voxel}, the query at {self.voxel}")
         query = self.query

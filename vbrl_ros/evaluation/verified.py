@@ -182,17 +182,20 @@ def _verify(task: tuple[int, int]) -> tuple[float, str | None, np.ndarray, float
     if work.odometry is not None and work.odometry.too_far(query, match, work.settings):
         return math.nan, "odometry", np.full((4, 4), np.nan), math.nan  # as the node: not registered
     if _last_query is None or _last_query[0] != query:
-        _last_query = (query, query_verifier(work.queries.clouds[query], work.settings, max_threads=1))
+        _last_query = (query, query_verifier(work.queries.clouds[query], work.settings, max_threads=1,
+                                             sensor=work.queries.frames[query]))
     expected = math.nan if work.odometry is None else work.odometry.heading(
         query, match, work.queries.frames[query], work.database.frames[match], work.settings)
-    check = _last_query[1].verify(work.database.clouds[match], expected_yaw=expected)
+    check = _last_query[1].verify(work.database.clouds[match], expected_yaw=expected,
+                                  sensor=work.database.frames[match])
     T, _ = to_sensor_frames(check, work.queries.frames[query], work.database.frames[match])
     reason = closure_rejection(check, T, work.settings)
     if reason == "degenerate" and work.wider is not None and check.fitness >= work.retry_fitness:
         # as the node: once more with submaps of twice the neighbours (detector.LoopClosureDetector.verified)
         wider_queries, wider_database = work.wider
-        again = query_verifier(wider_queries.clouds[query], work.settings, max_threads=1).verify(
-            wider_database.clouds[match], expected_yaw=expected)
+        again = query_verifier(wider_queries.clouds[query], work.settings, max_threads=1,
+                               sensor=work.queries.frames[query]).verify(
+            wider_database.clouds[match], expected_yaw=expected, sensor=work.database.frames[match])
         T_again, _ = to_sensor_frames(again, work.queries.frames[query], work.database.frames[match])
         if closure_rejection(again, T_again, work.settings) is None:
             return again.fitness, None, T_again, check.fitness
