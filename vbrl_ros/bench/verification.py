@@ -123,15 +123,17 @@ def measure(pairs: list[KeyframePair] | None = None, repeats: int = 3) -> dict[s
         for i, p in enumerate(pairs):
             start, start_cpu = time.perf_counter(), time.process_time()
             check = verify_loop(p.query, p.match, voxel_size=VOXEL_M, max_threads=1,
-                                max_closure_distance=settings.max_closure_distance, timings=stages[i])
+                                max_closure_distance=settings.max_closure_distance, timings=stages[i],
+                                query_sensor=p.query_frame, match_sensor=p.match_frame)
             cpu[i] += 1e3 * (time.process_time() - start_cpu)
             wall[i] += 1e3 * (time.perf_counter() - start)
             T, _ = to_sensor_frames(check, p.query_frame, p.match_frame)
             outcomes.append((closure_rejection(check, T, settings), check.fitness, *_pose_error(T, p.truth)))
-            verifier = query_verifier(p.query, settings, max_threads=1)
-            verifier.verify(pairs[i - 1].match)  # another candidate first: the query's side is ready
+            verifier = query_verifier(p.query, settings, max_threads=1, sensor=p.query_frame)
+            # another candidate first: the query's side is ready
+            verifier.verify(pairs[i - 1].match, sensor=pairs[i - 1].match_frame)
             start_cpu = time.process_time()
-            verifier.verify(p.match, timings=shared[i])
+            verifier.verify(p.match, timings=shared[i], sensor=p.match_frame)
             cpu_shared[i] += 1e3 * (time.process_time() - start_cpu)
     revisit = np.array([p.revisit for p in pairs])
     columns = {"revisits": (revisit, stages, cpu), "unrelated": (~revisit, stages, cpu),

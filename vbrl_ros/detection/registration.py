@@ -151,6 +151,8 @@ def verify_loop(
     max_threads: int = 0,
     max_closure_distance: float | None = None,
     timings: dict[str, float] | None = None,
+    query_sensor: np.ndarray | None = None,
+    match_sensor: np.ndarray | None = None,
 ) -> Verification:
     """Register ``query_points`` (N, 3) onto ``match_points`` (M, 3) with KISS-ICP.
 
@@ -163,15 +165,17 @@ def verify_loop(
     (plus ``SEARCH_MARGIN_M``; default: ``MAX_SHIFT_M``). Empty or tiny
     clouds give ``converged=False`` and ``fitness=0`` instead of raising. ``timings``, when
     given, accumulates the CPU milliseconds each stage took (``vbrl bench --verification``).
+    ``query_sensor``, ``match_sensor``: each keyframe's sensor -> its cloud's frame (4x4), which
+    tells the band of elevations it saw (:class:`PreparedCloud`); None: unknown.
     Several candidates of one query: :class:`QueryVerifier` prepares the query once.
     """
     laps = _Laps(timings)
     verifier = QueryVerifier(query_points, voxel_size=voxel_size,
                              max_correspondence_distance=max_correspondence_distance,
                              max_iterations=max_iterations, max_threads=max_threads,
-                             max_closure_distance=max_closure_distance)
+                             max_closure_distance=max_closure_distance, sensor=query_sensor)
     laps.lap("prepare")
-    return verifier.verify(match_points, initial_guess=initial_guess, timings=timings)
+    return verifier.verify(match_points, initial_guess=initial_guess, timings=timings, sensor=match_sensor)
 
 
 class QueryVerifier:
