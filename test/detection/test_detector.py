@@ -2,8 +2,9 @@ from dataclasses import replace
 
 import numpy as np
 
+from vbrl_ros.detection.candidate_verification import query_verifier, verify_candidates, wants_wider_retry
 from vbrl_ros.detection.database import KeyframeDatabase
-from vbrl_ros.detection.detector import LoopClosureDetector, query_verifier, verify_candidates, wants_wider_retry
+from vbrl_ros.detection.detector import LoopClosureDetector
 from vbrl_ros.detection.registration import SEARCH_MARGIN_M
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.model.builtin import load_default_model
@@ -115,7 +116,7 @@ def test_without_submaps_nothing_is_retried():
 
 
 def test_a_wider_retry_adds_what_it_accepted_after_the_closures_already_found():
-    from vbrl_ros.detection.detector import KeyframeResult, LoopClosure, with_wider_retry
+    from vbrl_ros.detection.candidate_verification import KeyframeResult, LoopClosure, with_wider_retry
 
     def closure(match_id):
         return LoopClosure(query_id=9, match_id=match_id, query_stamp=9.0, match_stamp=float(match_id),

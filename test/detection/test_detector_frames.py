@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 from scipy.linalg import expm, logm
 
+from vbrl_ros.detection.candidate_verification import to_sensor_frames
 from vbrl_ros.detection.database import KeyframeDatabase
-from vbrl_ros.detection.detector import LoopClosureDetector, to_sensor_frames
+from vbrl_ros.detection.detector import LoopClosureDetector
 from vbrl_ros.detection.registration import Verification
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.model.builtin import load_default_model

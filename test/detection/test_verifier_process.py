@@ -10,8 +10,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from vbrl_ros.detection.candidate_verification import verify_candidates
 from vbrl_ros.detection.database import KeyframeDatabase
-from vbrl_ros.detection.detector import LoopClosureDetector, verify_candidates
+from vbrl_ros.detection.detector import LoopClosureDetector
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.detection.verifier_process import VerifierError, VerifierProcess
 from vbrl_ros.model.builtin import load_default_model

@@ -1,7 +1,7 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vbrl_ros.detection.detector import LoopClosure
+from vbrl_ros.detection.candidate_verification import LoopClosure
 from vbrl_ros.ros.messages import CLOSURE_COLUMNS, closures_message, lio_sam_message, parse_closures
 
 

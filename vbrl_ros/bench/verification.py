@@ -22,12 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from vbrl_ros.detection.detector import (
-    closure_rejection,
-    query_verifier,
-    to_sensor_frames,
-    verification_cloud,
-)
+from vbrl_ros.detection.candidate_verification import closure_rejection, query_verifier, to_sensor_frames
+from vbrl_ros.detection.detector import verification_cloud
 from vbrl_ros.detection.registration import verify_loop, yaw_guess
 from vbrl_ros.detection.settings import DetectorSettings
 
@@ -111,7 +107,7 @@ def keyframe_pairs(revisits: int = 24, unrelated: int = 12, seed: int = 3) -> li
 def measure(pairs: list[KeyframePair] | None = None, repeats: int = 3) -> dict[str, Any]:
     """CPU milliseconds per candidate of each stage (mean over ``repeats`` passes over ``pairs``),
     for revisits and unrelated places apart, and for a query whose preparation is shared
-    (:func:`~vbrl_ros.detection.detector.query_verifier`, as for a query's second and later
+    (:func:`~vbrl_ros.detection.candidate_verification.query_verifier`, as for a query's second and later
     candidates); the decisions and pose errors of the last pass."""
     pairs = keyframe_pairs() if pairs is None else pairs
     settings = DetectorSettings(verification_voxel=VOXEL_M)

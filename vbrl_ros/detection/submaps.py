@@ -25,7 +25,7 @@ from kiss_icp.voxelization import voxel_down_sample
 #: Neighbours farther than this from the keyframe (m) are not merged: odometry drifts with travel,
 #: and what they see is another place.
 MAX_NEIGHBOUR_DISTANCE_M = 6.0
-#: The wider submaps a registration that slid is retried with (detector.WIDER_RETRY_FITNESS) reach
+#: The wider submaps a registration that slid is retried with (candidate_verification.WIDER_RETRY_FITNESS) reach
 #: this far: four times the neighbours of keyframes a couple of metres apart.
 WIDER_NEIGHBOUR_DISTANCE_M = 12.0
 

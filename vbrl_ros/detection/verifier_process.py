@@ -4,9 +4,9 @@ KISS-ICP keeps the GIL for most of a registration (measured: the node's main
 thread got ~9 % of its Python time while a thread verified), so a thread frees
 nothing; a process does. :class:`VerifierProcess` starts one with the *spawn*
 method (a fork of a process running DDS threads is not safe), sends it one
-:class:`~vbrl_ros.detection.detector.Retrieval` at a time (the query's and the
+:class:`~vbrl_ros.detection.candidate_verification.Retrieval` at a time (the query's and the
 candidates' clouds travel with it, ~50 kB each at 1 m voxels) and gets the
-:class:`~vbrl_ros.detection.detector.KeyframeResult` back. The child imports no
+:class:`~vbrl_ros.detection.candidate_verification.KeyframeResult` back. The child imports no
 ROS, ignores SIGINT (Ctrl-C reaches the whole process group; the parent stops
 it) and exits when the parent's end of the pipe closes, even after a kill -9 of
 the parent. As with any spawned process, a script that starts one must guard
@@ -24,10 +24,10 @@ from typing import TYPE_CHECKING
 from vbrl_ros.detection.settings import DetectorSettings
 
 if TYPE_CHECKING:
-    from vbrl_ros.detection.detector import KeyframeResult, Retrieval
+    from vbrl_ros.detection.candidate_verification import KeyframeResult, Retrieval
 
 # The child imports this module before it can run serve(): nothing heavy here (numpy, KISS-ICP and
-# the detector come inside serve), so that it ignores Ctrl-C within milliseconds of its start.
+# the verification come inside serve), so that it ignores Ctrl-C within milliseconds of its start.
 
 #: Seconds a child may take to finish its registration and exit before it is killed.
 STOP_TIMEOUT_S = 10.0
@@ -121,7 +121,7 @@ class VerifierProcess:
 def serve(connection: Connection, settings: DetectorSettings) -> None:
     """The child's loop: a Retrieval in, ("ok", KeyframeResult) or ("error", one line) out; None ends it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group
-    from vbrl_ros.detection.detector import verify_candidates
+    from vbrl_ros.detection.candidate_verification import verify_candidates
 
     warm_up(settings)
     connection.send(("ok", None))
@@ -144,7 +144,7 @@ def warm_up(settings: DetectorSettings) -> None:
     import numpy as np
 
     from vbrl_ros.detection.database import Candidate
-    from vbrl_ros.detection.detector import Retrieval, verify_candidates
+    from vbrl_ros.detection.candidate_verification import Retrieval, verify_candidates
 
     rng = np.random.default_rng(0)
     walls = rng.uniform(-20, 20, (2000, 3)) * [1, 1, 0.1] + [0, 0, 1]

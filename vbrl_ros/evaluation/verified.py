@@ -26,13 +26,13 @@ import numpy as np
 from tqdm import tqdm
 
 from vbrl_ros.detection.corroboration import RecentRegistrations, agrees_with_odometry, registered_position
-from vbrl_ros.detection.detector import (
+from vbrl_ros.detection.candidate_verification import (
     WIDER_RETRY_FITNESS,
     closure_rejection,
     query_verifier,
-    submap_gap_s,
     to_sensor_frames,
 )
+from vbrl_ros.detection.detector import submap_gap_s
 from vbrl_ros.detection.odometry_gate import (
     SPARE_FACTOR,
     kept_with_spares,
@@ -76,7 +76,7 @@ class VerifiedCandidates:
     fitness: np.ndarray  # (n, k), NaN for padding
     rejection: np.ndarray  # (n, k) object: the rule's reason at fitness 0 (None: accepted)
     T_query_match: np.ndarray  # (n, k, 4, 4) between the sensors, NaN for padding
-    # (n, k) of those accepted only when retried with wider submaps (detector.WIDER_RETRY_FITNESS), the
+    # (n, k) of those accepted only when retried with wider submaps (candidate_verification.WIDER_RETRY_FITNESS), the
     # first registration's fitness, NaN for the others: the node retries only from WIDER_RETRY_FITNESS
     # times its min_fitness, so a sweep over min_fitness needs it
     retried_from: np.ndarray | None = None

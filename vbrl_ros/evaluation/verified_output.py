@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from vbrl_ros.detection.detector import WIDER_RETRY_NEIGHBOURS
+from vbrl_ros.detection.candidate_verification import WIDER_RETRY_NEIGHBOURS
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, WIDER_NEIGHBOUR_DISTANCE_M
 from vbrl_ros.evaluation.methods import SourceDescriptors

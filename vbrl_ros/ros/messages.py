@@ -28,7 +28,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
-from vbrl_ros.detection.detector import LoopClosure
+from vbrl_ros.detection.candidate_verification import LoopClosure
 
 CLOSURE_COLUMNS: tuple[str, ...] = (
     "query_stamp", "match_stamp", "query_keyframe_id", "match_keyframe_id",
