@@ -136,3 +136,42 @@ def test_simulate_options_write_the_mount_into_poses_and_sidecar(tmp_path, capsy
     with pytest.raises(ValueError, match="beam level render"):  # before anything is written
         _cli([str(tmp_path / "b"), *tiny, "--beams", "500", "--tilt", "0", "30"])
     assert not (tmp_path / "b").exists()
+
+
+def test_a_swaying_sensor_tilts_smoothly_about_its_mount_seed_by_seed(town):
+    def sway(seed: int, **mount) -> np.ndarray:
+        route = make_route(town, RouteConfig(loops=2, spacing_m=0.5, sensor_sway_deg=3.0, sensor_sway_seed=seed,
+                                             **mount))
+        return np.array([_roll_pitch_deg(pose) for pose in route.poses]), route
+
+    angles, route = sway(1)
+    level = make_route(town, RouteConfig(loops=2, spacing_m=0.5))
+    np.testing.assert_array_equal(route.positions, level.positions)  # only the orientation sways
+    np.testing.assert_allclose(route.yaw, level.yaw, atol=1e-12)
+    assert np.abs(angles).max() <= 9.0 + 1e-9  # clipped at three standard deviations
+    assert angles.std(axis=0) == pytest.approx([3.0, 3.0], rel=0.35)  # a few correlation lengths: not exact
+    assert np.abs(np.diff(angles, axis=0)).max() < 1.5  # smooth: half a metre apart, within a degree or so
+    assert abs(np.corrcoef(angles[:, 0], angles[:, 1])[0, 1]) < 0.3  # roll and pitch sway apart
+    other, _ = sway(2)
+    assert np.abs(other - angles).mean() > 1.0
+    np.testing.assert_array_equal(sway(1)[0], angles)
+    mounted, _ = sway(1, sensor_roll_deg=5.0, sensor_pitch_deg=-10.0)  # about the mount's tilt
+    np.testing.assert_allclose(mounted - angles, np.broadcast_to([5.0, -10.0], angles.shape), atol=0.05)
+
+
+def test_sway_is_validated_and_reaches_the_cli(tmp_path, capsys):
+    for bad in (-1.0, 10.5, math.nan, "2"):
+        with pytest.raises(ValueError, match="sensor_sway_deg"):
+            RouteConfig(sensor_sway_deg=bad)
+    with pytest.raises(ValueError, match="sensor_sway_deg"):  # the mount's 40 plus three times 2 is beyond 45
+        RouteConfig(sensor_pitch_deg=40.0, sensor_sway_deg=2.0)
+    with pytest.raises(ValueError, match="sensor_sway_seed"):
+        RouteConfig(sensor_sway_seed=-1)
+    tiny = ["--blocks", "2", "2", "--beams", "16", "--columns", "360", "--scans", "3", "--spacing", "3",
+            "--quiet", "--format", "kitti"]
+    assert _cli([str(tmp_path), *tiny, "--sway", "2", "--seed", "4"]) == 0
+    assert "tilted 0.0 deg, swaying 2 deg" in capsys.readouterr().out
+    route = json.loads((tmp_path / "summer_clear.sim.json").read_text())["route"]
+    assert (route["sensor_sway_deg"], route["sensor_sway_seed"]) == (2.0, 4)  # drawn from the run seed
+    poses = np.loadtxt(tmp_path / "summer_clear" / "poses.txt").reshape(-1, 3, 4)
+    assert max(abs(a) for pose in poses for a in _roll_pitch_deg(np.vstack([pose, [0, 0, 0, 1]]))) > 0.1

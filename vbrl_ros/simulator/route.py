@@ -31,6 +31,12 @@ sideways by ``lane_wander_m * tanh(g(s))``, where ``g`` is a unit-variance
 Gaussian process over the path length ``s`` with a correlation length of
 ``WANDER_CORRELATION_M`` drawn from ``lane_wander_seed``: smooth, within
 the amplitude, and different for every seed. The poses follow the wandering line.
+
+Nor does a sensor keep its tilt: a two-wheeled robot pitches as it brakes, a rover rolls over
+kerbs and grass, a hand-held sensor sways with the walk. ``sensor_sway_deg`` adds to the
+mount's roll and pitch two such processes over the path, each of that standard deviation
+(clipped at three), correlated over ``SWAY_CORRELATION_M`` and drawn from
+``sensor_sway_seed``.
 """
 
 from __future__ import annotations
@@ -55,6 +61,11 @@ WANDER_CORRELATION_M = 30.0
 #: Largest wander amplitude: beyond it the inner side of a rounded corner tightens towards a cusp.
 MAX_LANE_WANDER_M = 3.0
 _WANDER_SALT = 0x1A7E  # the wander's own random stream, apart from the town's and the run's
+#: Path length over which a sensor's sway stays correlated.
+SWAY_CORRELATION_M = 5.0
+#: Largest sway (standard deviation, degrees).
+MAX_SENSOR_SWAY_DEG = 10.0
+_SWAY_SALT = 0x5A7
 
 
 def _positive(name: str, value: float | None, allow_none: bool = False) -> None:
@@ -81,7 +92,9 @@ class RouteConfig:
     one mounted askew), fixed for the whole drive and included in the poses:
     R = Rz(yaw) Ry(pitch) Rx(roll), right-handed about the sensor's x (forward)
     and y (left) axes, so a positive roll lifts the left side and a positive
-    pitch tips the front down. Each lies in [-45, 45] degrees.
+    pitch tips the front down. Each lies in [-45, 45] degrees. ``sensor_sway_deg`` (at most
+    10, with the mount's tilt within 45 at three of it) sways both about the mount from
+    ``sensor_sway_seed`` (module docstring).
     ``lane_wander_m`` (at most 3 m) is the amplitude of a smooth lateral wander
     of the driven line about its lane, drawn from ``lane_wander_seed``; give
     sessions different seeds so they drive different lines (module docstring).
@@ -101,6 +114,8 @@ class RouteConfig:
     sensor_height_m: float = 1.8
     sensor_roll_deg: float = 0.0
     sensor_pitch_deg: float = 0.0
+    sensor_sway_deg: float = 0.0
+    sensor_sway_seed: int = 0
     sample_offset_m: float = 0.0
     home: tuple[int, int] | None = None
     max_scans: int | None = None
@@ -121,6 +136,15 @@ class RouteConfig:
             if not isinstance(value, (int, float)) or not -MAX_MOUNT_TILT_DEG <= value <= MAX_MOUNT_TILT_DEG:
                 raise ValueError(f"RouteConfig.{name} must lie in [-{MAX_MOUNT_TILT_DEG:g}, "
                                  f"{MAX_MOUNT_TILT_DEG:g}] degrees, got {value!r}")
+        sway = self.sensor_sway_deg
+        if not isinstance(sway, (int, float)) or not 0 <= sway <= MAX_SENSOR_SWAY_DEG or (
+                max(abs(self.sensor_roll_deg), abs(self.sensor_pitch_deg)) + 3 * sway > MAX_MOUNT_TILT_DEG):
+            raise ValueError(f"RouteConfig.sensor_sway_deg must lie in [0, {MAX_SENSOR_SWAY_DEG:g}] degrees, "
+                             f"with the mount's roll and pitch plus three of it within {MAX_MOUNT_TILT_DEG:g}, "
+                             f"got {sway!r}")
+        if not isinstance(self.sensor_sway_seed, (int, np.integer)) or self.sensor_sway_seed < 0:
+            raise ValueError(f"RouteConfig.sensor_sway_seed must be a non-negative integer, "
+                             f"got {self.sensor_sway_seed!r}")
         if not isinstance(self.lane_offset_m, (int, float)) or not 0 <= self.lane_offset_m <= 5:
             raise ValueError(f"RouteConfig.lane_offset_m must lie in [0, 5], got {self.lane_offset_m!r}")
         if not isinstance(self.lane_wander_m, (int, float)) or not 0 <= self.lane_wander_m <= MAX_LANE_WANDER_M:
@@ -218,13 +242,26 @@ def _lane_polyline(points: np.ndarray, offset: float) -> np.ndarray:
     return np.array(shifted)
 
 
+def _smooth_process(count: int, correlation_m: float, rng: np.random.Generator) -> np.ndarray:
+    """A unit-variance Gaussian process over ``count`` dense path points, correlated over
+    ``correlation_m`` (exp(-d^2 / 2 l^2) at distance d)."""
+    sigma = correlation_m / math.sqrt(2.0) / _DENSE_STEP_M
+    process = gaussian_filter1d(rng.standard_normal(count), sigma, mode="reflect")
+    # White noise smoothed by a unit-area Gaussian of width sigma has variance 1 / (2 sqrt(pi) sigma).
+    return process * math.sqrt(2.0 * math.sqrt(math.pi) * sigma)
+
+
+def _sway(s: np.ndarray, sway_deg: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(roll, pitch) in degrees added to the mount's at the dense path points ``s``."""
+    rng = np.random.default_rng([seed, _SWAY_SALT])
+    roll, pitch = (sway_deg * np.clip(_smooth_process(len(s), SWAY_CORRELATION_M, rng), -3.0, 3.0)
+                   for _ in range(2))
+    return roll, pitch
+
+
 def _wander(xy: np.ndarray, amplitude: float, seed: int) -> np.ndarray:
     """Move the dense path ``xy`` (points ``_DENSE_STEP_M`` apart) sideways by the lateral wander."""
-    sigma = WANDER_CORRELATION_M / math.sqrt(2.0) / _DENSE_STEP_M
-    white = np.random.default_rng([seed, _WANDER_SALT]).standard_normal(len(xy))
-    process = gaussian_filter1d(white, sigma, mode="reflect")
-    # White noise smoothed by a unit-area Gaussian of width sigma has variance 1 / (2 sqrt(pi) sigma).
-    process *= math.sqrt(2.0 * math.sqrt(math.pi) * sigma)
+    process = _smooth_process(len(xy), WANDER_CORRELATION_M, np.random.default_rng([seed, _WANDER_SALT]))
     tangent = np.gradient(xy, axis=0)
     tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
     right = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
@@ -274,7 +311,11 @@ def make_route(town: Town, config: RouteConfig | None = None) -> Route:
     poses[:, 1, 0] = np.sin(heading)
     poses[:, 0, 1] = -np.sin(heading)
     poses[:, 2, 2] = poses[:, 3, 3] = 1.0
-    if cfg.sensor_roll_deg or cfg.sensor_pitch_deg:  # untilted poses stay exactly yaw-only
+    if cfg.sensor_sway_deg > 0:
+        roll, pitch = _sway(s, cfg.sensor_sway_deg, cfg.sensor_sway_seed)
+        for i, (r, p) in enumerate(zip(np.interp(s_samples, s, roll), np.interp(s_samples, s, pitch))):
+            poses[i, :3, :3] = poses[i, :3, :3] @ mount_rotation(cfg.sensor_roll_deg + r, cfg.sensor_pitch_deg + p)
+    elif cfg.sensor_roll_deg or cfg.sensor_pitch_deg:  # untilted poses stay exactly yaw-only
         poses[:, :3, :3] = poses[:, :3, :3] @ mount_rotation(cfg.sensor_roll_deg, cfg.sensor_pitch_deg)
     poses[:, 0, 3], poses[:, 1, 3], poses[:, 2, 3] = x, y, cfg.sensor_height_m
     loop_of_sample = dense_loop[np.clip(np.searchsorted(s, s_samples), 0, len(s) - 1)]

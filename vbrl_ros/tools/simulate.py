@@ -102,6 +102,10 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
                             "lifts the left side, positive pitch tips the front down (e.g. 0 20 for a "
                             "hand-held sensor pointed at the ground); a tilted sensor is rendered as a level "
                             "one with a widened field of view, cropped to its own")
+    mount.add_argument("--sway", type=float, default=0.0, metavar="DEG",
+                       help="the sensor's roll and pitch sway about its mount (standard deviation in degrees, at "
+                            "most 10), smooth over ~5 m of path and drawn from the run seed: a two-wheeled robot "
+                            "pitching as it brakes, a rover on rough ground, a hand-held sensor")
 
     keyframes = parser.add_argument_group("keyframe clouds (as SLAM front-ends publish them)")
     keyframes.add_argument("--thin-voxel", type=float, default=None, metavar="V",
@@ -177,7 +181,8 @@ def run(args: argparse.Namespace) -> int:
     route_config = RouteConfig(loops=args.loops, spacing_m=spacing, rate_hz=args.rate, speed_mps=args.speed,
                                sample_offset_m=args.sample_offset, max_scans=args.scans,
                                sensor_height_m=args.sensor_height, sensor_roll_deg=args.tilt[0],
-                               sensor_pitch_deg=args.tilt[1], lane_offset_m=args.lane_offset,
+                               sensor_pitch_deg=args.tilt[1], sensor_sway_deg=args.sway,
+                               lane_offset_m=args.lane_offset,
                                lane_wander_m=args.lane_wander)
     lidar = LidarConfig(beams=args.beams, columns=args.columns,
                         vertical_fov_deg=tuple(args.vertical_fov) if args.vertical_fov else None,
@@ -185,8 +190,12 @@ def run(args: argparse.Namespace) -> int:
                         blocked_azimuth_deg=tuple(args.blocked_azimuth) if args.blocked_azimuth else None)
     keyframes = KeyframeFilter(thin_voxel_m=args.thin_voxel, remove_ground=args.no_ground)
     tilt = tilt_angle(mount_rotation(route_config.sensor_roll_deg, route_config.sensor_pitch_deg))
-    if tilt > 0:  # a tilt too large for the beam count fails here, not after the first outputs
-        level_cover(lidar, tilt)
+    # the largest tilt the sway may reach: three standard deviations on each axis
+    reach = 3.0 * route_config.sensor_sway_deg
+    steepest = tilt_angle(mount_rotation(abs(route_config.sensor_roll_deg) + reach,
+                                         abs(route_config.sensor_pitch_deg) + reach))
+    if steepest > 0:  # a tilt too large for the beam count fails here, not after the first outputs
+        level_cover(lidar, steepest)
     jobs = [(scenario, seed, scenario.name if len(args.seed) == 1 else f"{scenario.name}_seed{seed}")
             for scenario in scenarios for seed in args.seed]
     paths = [_output_path(args.output, name, args.format) for _, _, name in jobs]
@@ -195,14 +204,17 @@ def run(args: argparse.Namespace) -> int:
         raise FileExistsError(f"output exists already, not overwriting: {', '.join(existing)}")
 
     town = generate_town(town_config, args.town_seed)
-    # The wander is drawn from the run seed; without it every job drives the same route.
-    job_routes = [replace(route_config, lane_wander_seed=seed) if route_config.lane_wander_m > 0 else route_config
+    # The wander and the sway are drawn from the run seed; without them every job drives the same route.
+    job_routes = [replace(route_config,
+                          lane_wander_seed=seed if route_config.lane_wander_m > 0 else route_config.lane_wander_seed,
+                          sensor_sway_seed=seed if route_config.sensor_sway_deg > 0 else route_config.sensor_sway_seed)
                   for _, seed, _ in jobs]
     routes = {config: make_route(town, config) for config in dict.fromkeys(job_routes)}
     route = routes[job_routes[0]]
     print(f"town {args.blocks[0]}x{args.blocks[1]} blocks (seed {args.town_seed}), route {route.length_m:.0f} m "
           f"in {len(route.loop_names)} loops, {len(route)} scans of {lidar.beams}x{lidar.columns} rays, "
-          f"sensor {route_config.sensor_height_m:g} m up, tilted {math.degrees(tilt):.1f} deg")
+          f"sensor {route_config.sensor_height_m:g} m up, tilted {math.degrees(tilt):.1f} deg"
+          + (f", swaying {route_config.sensor_sway_deg:g} deg" if route_config.sensor_sway_deg > 0 else ""))
     args.output.mkdir(parents=True, exist_ok=True)
     for (scenario, seed, name), path, config in zip(jobs, paths, job_routes):
         sim = simulate_run(town, routes[config], lidar, scenario, seed, keyframes)
