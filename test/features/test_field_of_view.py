@@ -9,7 +9,14 @@ import pytest
 from vbrl_ros.config import FeatureConfig, VBRLConfig, VoxelGridConfig
 from vbrl_ros.datasets.mount_tilt import mount_rotation
 from vbrl_ros.features.featurizer import Featurizer
-from vbrl_ros.features.field_of_view import field_top, mirrors, seen_both_ways
+from vbrl_ros.features.field_of_view import (
+    MIN_TILT_DEG,
+    MIRROR_RAMP_DEG,
+    field_top,
+    mirrored_top,
+    mirrors,
+    seen_both_ways,
+)
 from vbrl_ros.features.parallel import describe_keyframe
 
 GRID = VoxelGridConfig(kind="polar", rings=20, sectors=30, max_range=40.0, z_edges=(0.0, 20.0), frame="ground")
@@ -60,6 +67,21 @@ def test_a_point_the_sensor_turned_round_would_not_see_is_dropped():
     assert (points[:, 2] / np.hypot(points[:, 0], points[:, 1]) <= math.tan(top) + 1e-9).all()  # all were seen
     np.testing.assert_array_equal(seen_both_ways(points, to_level, top), [False, True, True, True])
     assert seen_both_ways(points, np.eye(3), top).all()
+
+
+def test_mirroring_sets_in_gradually_so_a_swaying_sensor_is_not_cut_by_fits_and_starts():
+    points, top = beams(-30.0, 10.0, count=32), math.radians(10.0)
+    kept = {}
+    for pitch in (2.9, 3.05, 4.0, 5.0, 6.0, 8.0):
+        rotation = mount_rotation(0.0, pitch).T  # sensor -> levelled
+        kept[pitch] = seen_both_ways(points, rotation, top).mean()
+    assert kept[2.9] == 1.0 and kept[3.05] > 0.995  # no sudden cut at the threshold...
+    shares = list(kept.values())
+    assert all(a >= b for a, b in zip(shares, shares[1:])) and kept[5.0] < kept[4.0] < kept[3.05]  # ... a ramp
+    full = MIN_TILT_DEG + MIRROR_RAMP_DEG
+    assert mirrored_top(mount_rotation(0.0, full).T, top) == pytest.approx(top)  # then the whole mirror
+    assert mirrored_top(mount_rotation(0.0, 8.0).T, top) == top
+    assert kept[8.0] < 0.9  # what the tilted-sensor tests rely on
 
 
 def test_the_height_map_drops_what_seen_both_ways_drops(town_scan):

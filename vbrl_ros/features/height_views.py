@@ -25,7 +25,7 @@ from numba import njit
 from vbrl_ros.config import VBRLConfig, VoxelGridConfig
 from vbrl_ros.features.bev_spectrum import SpectrumSampler
 from vbrl_ros.features.blind_wedges import azimuth_bins, hide_mirrored_wedges
-from vbrl_ros.features.field_of_view import half_turn_in_sensor, mirrors
+from vbrl_ros.features.field_of_view import half_turn_in_sensor, mirrored_top, mirrors
 from vbrl_ros.features.height_map import (
     CELL_M,
     MARGIN_M,
@@ -124,7 +124,8 @@ class HeightMapModalities:
         frame = frame or GroundFrame.identity()
         half_turn, top_tan = np.eye(3), np.inf
         if self.config.features.mirror_field_of_view and mirrors(frame.rotation, frame.field_top):
-            half_turn, top_tan = half_turn_in_sensor(frame.rotation), math.tan(frame.field_top)
+            half_turn = half_turn_in_sensor(frame.rotation)
+            top_tan = math.tan(mirrored_top(frame.rotation, frame.field_top))
         cells = HeightCells(*height_cells(points, frame.rotation, float(frame.height), self.reach, CELL_M,
                                           self.z_edges, self.config.features.drop_weather_clutter,
                                           half_turn, top_tan))
