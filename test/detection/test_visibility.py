@@ -9,9 +9,14 @@ import numpy as np
 import pytest
 
 from vbrl_ros.datasets.mount_tilt import mount_rotation
+from vbrl_ros.detection.candidate_verification import Retrieval, verify_candidates
+from vbrl_ros.detection.database import Candidate
 from vbrl_ros.detection.detector import verification_cloud
 from vbrl_ros.detection.registration import QueryVerifier
+from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.detection.visibility import AZIMUTH_BINS, FieldOfView, Horizon
+from vbrl_ros.evaluation.verified import Candidates, KeyframeClouds
+from vbrl_ros.evaluation.verified import verify_candidates as verify_every_candidate
 from vbrl_ros.grids.ground_frame import ground_frame
 
 
@@ -108,6 +113,15 @@ def tilted_robot():
     return route, render
 
 
+def driven_back(pose: np.ndarray) -> np.ndarray:
+    """``pose`` turned half a turn about the vertical and 2 m over to its left: the other lane."""
+    back = pose.copy()
+    back[:3, :3] = np.diag([-1.0, -1.0, 1.0]) @ pose[:3, :3]
+    left = pose[:3, 1] * (1.0, 1.0, 0.0)
+    back[:3, 3] += 2.0 * left / np.linalg.norm(left)
+    return back
+
+
 def test_a_tilted_sensor_driven_back_on_the_other_lane_registers_over_the_threshold(tilted_robot):
     # measured: the right registrations overlapped .11-.30 without the band (two of five under the
     # node's 0.2), .23-.43 with it; other places .01-.04 either way
@@ -115,11 +129,7 @@ def test_a_tilted_sensor_driven_back_on_the_other_lane_registers_over_the_thresh
     without, with_band = [], []
     for place in (20, 60, 100, 140, 180):
         pose = route.poses[place]
-        back = pose.copy()
-        back[:3, :3] = np.diag([-1.0, -1.0, 1.0]) @ pose[:3, :3]  # a half turn about the vertical...
-        left = pose[:3, 1] * (1.0, 1.0, 0.0)
-        back[:3, 3] += 2.0 * left / np.linalg.norm(left)  # ... 2 m over, on the other lane
-        (query, query_frame), (first, first_frame) = render(back), render(pose)
+        (query, query_frame), (first, first_frame) = render(driven_back(pose)), render(pose)
         elsewhere, elsewhere_frame = render(route.poses[place + 40])
         without.append(QueryVerifier(query).verify(first))
         banded = QueryVerifier(query, sensor=query_frame)
@@ -129,3 +139,21 @@ def test_a_tilted_sensor_driven_back_on_the_other_lane_registers_over_the_thresh
     assert all(b.fitness > a.fitness + 0.05 for a, b in zip(without, with_band))
     assert all(b.rejection(0.2) is None for b in with_band)
     assert sum(a.rejection(0.2) is None for a in without) <= 3
+
+
+def test_the_node_and_the_evaluation_pass_each_keyframe_frame_to_the_verification(tilted_robot):
+    # the two places whose right registrations fall under 0.2 without the band
+    route, render = tilted_robot
+    settings = DetectorSettings()
+    for place in (100, 140):
+        (query, query_frame), (first, first_frame) = render(driven_back(route.poses[place])), render(route.poses[place])
+        result = verify_candidates(Retrieval(
+            keyframe_id=1, stamp=100.0, session="back", candidates=[Candidate(0, 0, 1.0, 0.0, "first")],
+            candidates_scored=1, frame=query_frame, cloud=query, candidate_clouds=[first],
+            candidate_frames=[first_frame]), settings)
+        assert len(result.closures) == 1 and result.closures[0].fitness >= settings.min_fitness
+        evaluated = verify_every_candidate(
+            KeyframeClouds([query], [query_frame]), KeyframeClouds([first], [first_frame]),
+            Candidates(np.array([[0]]), np.array([[1.0]])), settings, workers=1, progress=False)
+        assert evaluated.fitness[0, 0] == pytest.approx(result.closures[0].fitness)
+        assert evaluated.accepted_at(settings.min_fitness)[0, 0]
