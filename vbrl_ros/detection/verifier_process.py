@@ -143,8 +143,8 @@ def warm_up(settings: DetectorSettings) -> None:
     """One verification of a synthetic pair: loads and compiles what the first real one needs."""
     import numpy as np
 
-    from vbrl_ros.detection.database import Candidate
     from vbrl_ros.detection.candidate_verification import Retrieval, verify_candidates
+    from vbrl_ros.detection.database import Candidate
 
     rng = np.random.default_rng(0)
     walls = rng.uniform(-20, 20, (2000, 3)) * [1, 1, 0.1] + [0, 0, 1]

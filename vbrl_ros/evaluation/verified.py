@@ -25,13 +25,13 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from vbrl_ros.detection.corroboration import RecentRegistrations, agrees_with_odometry, registered_position
 from vbrl_ros.detection.candidate_verification import (
     WIDER_RETRY_FITNESS,
     closure_rejection,
     query_verifier,
     to_sensor_frames,
 )
+from vbrl_ros.detection.corroboration import RecentRegistrations, agrees_with_odometry, registered_position
 from vbrl_ros.detection.detector import submap_gap_s
 from vbrl_ros.detection.odometry_gate import (
     SPARE_FACTOR,

@@ -38,8 +38,8 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from vbrl_ros.detection.database import KeyframeDatabase
 from vbrl_ros.detection.candidate_verification import KeyframeResult, Retrieval, verify_candidates
+from vbrl_ros.detection.database import KeyframeDatabase
 from vbrl_ros.detection.detector import LoopClosureDetector
 from vbrl_ros.detection.settings import SettingsError
 from vbrl_ros.detection.verifier_process import VerifierError, VerifierProcess
