@@ -88,12 +88,12 @@ class PreparedCloud:
         self.ground = ground_mask(self.points)
 
     @classmethod
-    def of_thinned(cls, points: np.ndarray, voxel: float, ground: np.ndarray,
-                   sensor: np.ndarray | None = None) -> PreparedCloud:
-        """(N, 3) float64 finite points taken as they are, with their ``ground`` (bool (N,))."""
+    def of_thinned(cls, points: np.ndarray, voxel: float, ground: np.ndarray) -> PreparedCloud:
+        """(N, 3) float64 finite points taken as they are, with their ``ground`` (bool (N,)); the
+        sensor's pose unknown."""
         cloud = cls.__new__(cls)
         cloud.voxel = float(voxel)
-        cloud.sensor = sensor
+        cloud.sensor = None
         cloud.points = np.ascontiguousarray(points, dtype=np.float64)
         cloud.ground = np.asarray(ground, dtype=bool)
         return cloud

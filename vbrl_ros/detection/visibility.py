@@ -43,7 +43,7 @@ class FieldOfView:
     the cloud (:func:`~vbrl_ros.features.field_of_view.field_top`, and the same for the bottom), so
     a stray return does not widen it."""
 
-    to_sensor: np.ndarray  # (3, 3): the cloud's axes -> the sensor's
+    rotation: np.ndarray  # (3, 3): the sensor's axes -> the cloud's
     origin: np.ndarray  # (3,): the sensor in the cloud's frame
     tan_bottom: float
     tan_top: float
@@ -52,18 +52,23 @@ class FieldOfView:
     def of(cls, points: np.ndarray, sensor: np.ndarray) -> FieldOfView | None:
         """The field of view of ``points`` ((N, 3), the cloud's frame) from a sensor at ``sensor``
         (4x4, sensor -> the cloud's frame); None when too few returns tell it."""
-        rotation, origin = np.asarray(sensor, np.float64)[:3, :3], np.asarray(sensor, np.float64)[:3, 3]
-        local = (np.asarray(points, np.float64) - origin) @ rotation
+        sensor = np.asarray(sensor, np.float64)
+        local = _in_sensor(np.asarray(points, np.float64), sensor[:3, :3], sensor[:3, 3])
         top, bottom = field_top(local), -field_top(local * (1.0, 1.0, -1.0))
         if not (np.isfinite(top) and np.isfinite(bottom)):
             return None
-        return cls(rotation.T, origin, float(np.tan(bottom)), float(np.tan(top)))
+        return cls(sensor[:3, :3], sensor[:3, 3], float(np.tan(bottom)), float(np.tan(top)))
 
     def sees(self, points: np.ndarray, margin: float) -> np.ndarray:
         """(N,) bool: each point (the cloud's frame) lies in the band, to ``margin`` metres."""
-        local = (points - self.origin) @ self.to_sensor.T
+        local = _in_sensor(points, self.rotation, self.origin)
         reach = np.hypot(local[:, 0], local[:, 1])
         return (local[:, 2] <= reach * self.tan_top + margin) & (local[:, 2] >= reach * self.tan_bottom - margin)
+
+
+def _in_sensor(points: np.ndarray, rotation: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """(N, 3) points of a cloud's frame in the sensor's (``rotation``, ``origin``: sensor -> cloud)."""
+    return (points - origin) @ rotation
 
 
 class Horizon:
