@@ -63,9 +63,9 @@ def _positions(folder: Path) -> np.ndarray:
 def test_p1_all_methods_json_png_and_matches(trained, tmp_path, monkeypatch):
     (summer, _), model = trained
     out = tmp_path / "p1.json"
-    dump = tmp_path / "p1.matches.json"
+    dump, sc_dump = tmp_path / "p1.matches.json", tmp_path / "p1.sc_matches.json"
     assert vbrl(monkeypatch, "eval", summer, "--model", model, "--json", out, "--dump-matches", dump,
-                "--exclude", "20", "--quiet", "--workers", "1") == 0
+                "--dump-sc-matches", sc_dump, "--exclude", "20", "--quiet", "--workers", "1") == 0
     report = _read(out)
     assert report["protocol"] == "P1" and report["methods"] == METHODS
     for name in METHODS:
@@ -79,11 +79,13 @@ def test_p1_all_methods_json_png_and_matches(trained, tmp_path, monkeypatch):
             assert sum(c["hits"] for c in split.values()) == round(metrics["recall_at_1"] * metrics["num_revisits"])
     entries = _read(dump)
     assert {"query", "match", "distance"} <= set(entries[0])
-    # the dump recomputes the JSON's metrics exactly
-    for radius in (3.0, 5.0):
-        again = _as_json(evaluate_matches_file(dump, _positions(summer), radius=radius,
-                                               exclude=20).summary())
-        assert again == pytest.approx(report["metrics"]["VBRL"][f"{radius:g}"], nan_ok=True)
+    # each dump recomputes its method's metrics in the JSON exactly
+    for path, name in ((dump, "VBRL"), (sc_dump, "Scan Context")):
+        for radius in (3.0, 5.0):
+            again = _as_json(evaluate_matches_file(path, _positions(summer), radius=radius,
+                                                   exclude=20).summary())
+            assert again == pytest.approx(report["metrics"][name][f"{radius:g}"], nan_ok=True)
+    assert _read(sc_dump) != entries
 
 
 def test_p2_with_alignment(trained, tmp_path, monkeypatch):

@@ -38,7 +38,8 @@ def verified(tmp_path_factory) -> tuple[dict, list[dict], Path, str]:
     text = io.StringIO()
     with contextlib.redirect_stdout(text):
         assert vbrl("eval", source, "--verify", "--exclude", EXCLUDE, "--json", out, "--dump-matches", dump,
-                    "--no-ablations", "--quiet", "--workers", "2", "--min-fitness", "0.2", "0.1") == 0
+                    "--dump-sc-matches", folder / "sc_matches.json", "--no-ablations", "--quiet", "--workers", "2",
+                    "--min-fitness", "0.2", "0.1") == 0
     return json.loads(out.read_text()), json.loads(dump.read_text()), source, text.getvalue()
 
 
@@ -69,14 +70,27 @@ def test_the_dump_names_the_best_verified_candidate_and_recomputes_the_swept_met
         accepted = [f for f, why in zip(e["candidate_fitness"], e["candidate_rejection"]) if why is None]
         assert (max(accepted) if accepted else None) == (None if math.isnan(e["fitness"]) else e["fitness"])
     # any tool recomputes the verified row from the dump: score = 1 - fitness, lower = better
+    assert _verified_max_f1(entries, source) == pytest.approx(report["metrics"]["VBRL, verified"]["5"]["max_f1"])
+
+
+def test_scan_contexts_dump_recomputes_its_own_verified_row(verified):
+    report, entries, source, _ = verified
+    sc_entries = json.loads((source.parent.parent / "sc_matches.json").read_text())
+    assert [e["query"] for e in sc_entries] == [e["query"] for e in entries]
+    assert [e["candidates"] for e in sc_entries] != [e["candidates"] for e in entries]  # its own candidates
+    sc_row = report["metrics"]["Scan Context, verified"]["5"]["max_f1"]
+    assert _verified_max_f1(sc_entries, source) == pytest.approx(sc_row)
+
+
+def _verified_max_f1(entries: list[dict], source: Path) -> float:
+    """Max F1 at 5 m of a verified dump's best candidates scored 1 - fitness."""
     positions = np.loadtxt(source / "poses.txt").reshape(-1, 3, 4)[:, :, 3]
     indices = np.full((len(positions), 1), -1)
     scores = np.full((len(positions), 1), np.inf)
     for e in entries:
         if not math.isnan(e["fitness"]):
             indices[e["query"]], scores[e["query"]] = e["match"], 1.0 - e["fitness"]
-    again = evaluate_online(positions, indices, scores, 5.0, int(EXCLUDE))
-    assert again.max_f1 == pytest.approx(report["metrics"]["VBRL, verified"]["5"]["max_f1"])
+    return evaluate_online(positions, indices, scores, 5.0, int(EXCLUDE)).max_f1
 
 
 def test_bad_verification_options_say_which(tmp_path, capsys):
@@ -88,6 +102,8 @@ def test_bad_verification_options_say_which(tmp_path, capsys):
                                  ("--distance-threshold", "nan", "--distance-threshold")):
         assert vbrl("eval", source, "--verify", option, value) != 0
         assert named in capsys.readouterr().err
+    assert vbrl("eval", source, "--no-scan-context", "--dump-sc-matches", tmp_path / "sc.json") != 0
+    assert "--dump-sc-matches needs Scan Context" in capsys.readouterr().err
 
 
 def test_a_wider_verify_top_k_retrieves_the_spares_the_odometry_gate_draws_on(verified):

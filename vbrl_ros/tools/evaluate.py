@@ -40,9 +40,9 @@ from vbrl_ros.evaluation.retrieval import RetrievalResults, cross_session_retrie
 from vbrl_ros.evaluation.verified import TOP_K_RETRIEVED, retrieval_width
 from vbrl_ros.io.atomic import atomic_write
 from vbrl_ros.model.model_file import VBRLModel, load_model
-from vbrl_ros.tools import evaluate_mounting, evaluate_verified
+from vbrl_ros.tools import evaluate_mounting, evaluate_scan_context, evaluate_verified
 from vbrl_ros.tools.evaluate_output import format_table, json_safe, write_matches
-from vbrl_ros.tools.evaluate_verified import VerifiedOutputs, verify_outputs
+from vbrl_ros.tools.evaluate_verified import SCAN_CONTEXT, VerifiedOutputs, verify_outputs
 from vbrl_ros.tools.options import add_keyframe_arguments, add_source_arguments
 from vbrl_ros.training.ablations import FULL_NAME, discover_ablations
 
@@ -106,19 +106,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--prune", type=float, default=0.0001,
                         help="VBRL: rows weighing < PRUNE x the largest row weight are not stored "
                              "or scored, as the node's weight_prune (0.0001)")
-    parser.add_argument("--scan-context", action=argparse.BooleanOptionalAction, default=True,
-                        help="also evaluate the Scan Context baseline (on)")
-    parser.add_argument("--sc-lidar-height", type=float, default=2.0,
-                        help="Scan Context: sensor height above ground, m (2.0)")
-    parser.add_argument("--sc-max-range", type=float, default=80.0, help="Scan Context range, m (80)")
-    parser.add_argument("--sc-candidates", type=int, default=10,
-                        help="Scan Context: ring-key prefilter candidates (10)")
-    parser.add_argument("--sc-sequence-length", type=int, default=1, metavar="N",
-                        help="Scan Context: rank with VBRL's sequence matching over N keyframes, "
-                             "for a like-for-like comparison (default 1: Scan Context as published)")
-    parser.add_argument("--sc-trail", action="store_true",
-                        help="Scan Context: read each keyframe with the same trail as VBRL, for a "
-                             "like-for-like comparison (default: the scan alone, as published)")
+    evaluate_scan_context.add_arguments(parser)
     evaluate_verified.add_arguments(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
@@ -188,7 +176,8 @@ def run(args: argparse.Namespace) -> int:
     exclude = args.exclude if evaluation.protocol == "P1" else None
     by_heading = {r: recalls_by_heading(indices, evaluation.queries.recorded_poses, evaluation.database.recorded_poses,
                                         r, exclude=exclude, alignment=evaluation.alignment) for r in evaluation.radii}
-    report(args, evaluation, metrics, agreement, full_results, verified, by_heading)
+    report(args, evaluation, metrics, agreement, {name: r for name, (_, r) in retrieved.items()}, verified,
+           by_heading)
     return 0
 
 
@@ -205,11 +194,10 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise ValueError("--translation-search must be a step in [0, 10] metres")
     if args.trail is not None and not (math.isfinite(args.trail) and 0 <= args.trail <= MAX_TRAIL_M):
         raise ValueError(f"--trail must be a number of metres in [0, {MAX_TRAIL_M:g}]")
-    for flag, length in (("--sequence-length", args.sequence_length),
-                         ("--sc-sequence-length", args.sc_sequence_length)):
-        if not 1 <= length <= 20:
-            raise ValueError(f"{flag} must be an integer in [1, 20]")
+    if not 1 <= args.sequence_length <= 20:
+        raise ValueError("--sequence-length must be an integer in [1, 20]")
     evaluate_mounting.check_arguments(args)
+    evaluate_scan_context.check_arguments(args)
     evaluate_verified.check_arguments(args)
     for name, path in (("QUERY_SOURCE", args.query), ("--against", args.against), ("--model", args.model)):
         if path is not None and not Path(path).exists():  # before minutes of describing
@@ -225,7 +213,6 @@ def in_sample_warnings(model: VBRLModel, sources: list[Path]) -> list[str]:
 
 def load(args: argparse.Namespace) -> Evaluation:
     """The models, the sources described once each, and the methods to compare."""
-    from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
     from vbrl_ros.evaluation.methods import ScanContextMethod, VBRLMethod, describe_source
     from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
 
@@ -237,7 +224,7 @@ def load(args: argparse.Namespace) -> Evaluation:
         config = replace(config, features=replace(config.features, trail_m=float(args.trail)))
     notes += in_sample_warnings(full, [args.query, args.against])
     notes += evaluate_mounting.notes(args)
-    sc_config = ScanContextConfig(max_range=args.sc_max_range, lidar_height=args.sc_lidar_height)
+    sc_config = evaluate_scan_context.config(args)
     step = full.translation_search() if args.translation_search is None else args.translation_search
     options = {"topic": args.topic, "poses": args.poses, "keyframe_distance": args.keyframe_distance,
                "every": args.every, "workers": args.workers, "progress": not args.quiet,
@@ -332,7 +319,7 @@ def exact_agreement(args: argparse.Namespace, evaluation: Evaluation,
 
 def report(args: argparse.Namespace, evaluation: Evaluation,
            metrics: dict[str, dict[float, RetrievalMetrics]], agreement: dict[str, Any] | None,
-           full_results: RetrievalResults | None, verified: VerifiedOutputs | None = None,
+           retrieved: dict[str, RetrievalResults], verified: VerifiedOutputs | None = None,
            by_heading: dict[float, dict[str, HeadingRecall] | None] | None = None) -> None:
     """Print the tables; write the JSON metrics, the PR curves and the matches asked for."""
     from vbrl_ros.evaluation import headroom
@@ -362,11 +349,14 @@ def report(args: argparse.Namespace, evaluation: Evaluation,
     plot_pr_curves({name: by_r[float(args.radius)] for name, by_r in metrics.items()}, plot,
                    title=f"{title}, {args.radius:g} m")
     print(f"PR curves written to {plot}")
-    if args.dump_matches is not None and full_results is not None:
-        entries = (matches_to_json(full_results, include_top_k=True) if verified is None
-                   else evaluate_verified.matches_entries(verified, FULL_NAME, full_results.database_limit))
-        out = write_matches(args.dump_matches, entries, queries.keyframe_index, database.keyframe_index)
-        print(f"{'verified ' if verified else ''}matches of {FULL_NAME} written to {out}")
+    for path, name in ((args.dump_matches, FULL_NAME), (args.dump_sc_matches, SCAN_CONTEXT)):
+        if path is None or name not in retrieved:
+            continue
+        results = retrieved[name]
+        entries = (matches_to_json(results, include_top_k=True) if verified is None
+                   else evaluate_verified.matches_entries(verified, name, results.database_limit))
+        out = write_matches(path, entries, queries.keyframe_index, database.keyframe_index)
+        print(f"{'verified ' if verified else ''}matches of {name} written to {out}")
 
 
 def write_metrics(args: argparse.Namespace, evaluation: Evaluation,
