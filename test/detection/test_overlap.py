@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from vbrl_ros.detection.overlap import MIN_CONSTRAINT, MIN_FACING_AREA_M2, agreement, covisible_overlap, is_constrained
+from vbrl_ros.detection.overlap import (
+    MIN_CONSTRAINT,
+    MIN_FACING_AREA_M2,
+    SURFACE_CREDIT,
+    agreement,
+    covisible_overlap,
+    is_constrained,
+)
 from vbrl_ros.detection.prepared_cloud import PreparedCloud
 
 
@@ -134,3 +141,30 @@ def test_the_plan_view_overlap_tells_a_room_from_itself_turned():
     assert covisible_overlap(a, b, turned) < 0.5 * same and covisible_overlap(a, b, moved) < 0.5 * same
     empty = PreparedCloud.of_thinned(np.empty((0, 3)), 1.0, np.zeros(0, dtype=bool))
     assert covisible_overlap(a, empty, np.eye(4)) == 0.0
+
+
+def rings(heights: np.ndarray, along: float) -> np.ndarray:
+    """The room's walls where horizontal rings at ``heights`` cross them, a point every 0.35 m
+    along each (about as thinned as verification keeps a cloud), from ``along`` metres past a corner."""
+    x, y = np.arange(-10 + along, 10, 0.35), np.arange(-6 + along, 6, 0.35)
+    outline = np.concatenate([np.c_[x, np.full_like(x, -6)], np.c_[x, np.full_like(x, 6)],
+                              np.c_[np.full_like(y, -10), y], np.c_[np.full_like(y, 10), y]])
+    return np.concatenate([np.c_[outline, np.full(len(outline), z)] for z in heights])
+
+
+def test_a_wall_sampled_by_another_sensors_rings_overlaps_at_the_surface_credit():
+    # two sensors' rings 0.35 m apart in height on the same walls, their points 0.175 m apart along
+    # them: no point lies within 0.3 m of the other cloud's, nearly every one on its planes
+    low, high = rings(np.arange(0.0, 4.0, 0.7), 0.0), rings(np.arange(0.35, 4.0, 0.7), 0.175)
+    found = agreement(low, high, np.eye(4), 1.0, no_ground)
+    assert 0.5 < found.overlap <= SURFACE_CREDIT  # nothing coincides: all of it is credit
+    moved = np.eye(4)
+    moved[:3, 3] = [0.8, 0.6, 0.0]  # off the walls' planes: no credit
+    assert agreement(low, high, moved, 1.0, no_ground).overlap < 0.2
+
+
+def test_scattered_clutter_earns_no_surface_credit():
+    rng = np.random.default_rng(4)
+    a, b = (rng.uniform((-10, -10, 0), (10, 10, 3), (3000, 3)) for _ in range(2))
+    found = agreement(a, b, np.eye(4), 1.0, no_ground)
+    assert found.overlap < 0.3  # the points that happen to lie within 0.3 m, not the credit

@@ -160,6 +160,11 @@ class PreparedCloud:
             maps[voxel].add_points(self.points)
         return maps[voxel]
 
+    @cached_property
+    def point_surfaces(self) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`surfaces` of every point, computed once (a query is checked against each candidate)."""
+        return self.surfaces(np.arange(len(self.points)))
+
     def surfaces(self, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(normals (n, 3), planarity (n,)) of the points at ``indices``, in this cloud's frame:
         the smallest principal axis of each point's ``NORMAL_NEIGHBOURS`` nearest points, and
