@@ -55,8 +55,9 @@ from vbrl_ros.detection.prepared_cloud import NORMAL_NEIGHBOURS, PreparedCloud
 #: Points closer than this many voxels to the other cloud overlap it.
 OVERLAP_DISTANCE = 0.3
 #: The overlap counted on the other cloud's surfaces weighs this much against the one on its points.
-#: At 0.6 no registration of the shared recordings changed its verdict, for either method's
-#: candidates; at 2/3 a wrong one of Scan Context's in a room passed.
+#: At 0.6 no registration of the shared recordings as recorded changed its verdict, for either
+#: method's candidates (with a wedge hidden, one wrong one of Scan Context's passed at .205); at 2/3
+#: a wrong one of Scan Context's in a room passed as recorded.
 SURFACE_CREDIT = 0.6
 #: A neighbourhood at least this planar (``PreparedCloud.surfaces``) is a surface that another
 #: sensor may have sampled elsewhere.
