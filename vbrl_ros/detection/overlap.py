@@ -113,10 +113,10 @@ def agreement_of(query: PreparedCloud, match: PreparedCloud, T_query_match: np.n
     on_points = _covisible_share(query, match, q_in_match, q_near, m_in_query, m_near)
     q_on = q_near.copy()
     q_on[inlier] |= surfaces.holds(q_in_match[inlier], match.points[nearest[inlier]], near)
-    m_asked = (to_query < voxel) & ~m_near
+    m_inlier = to_query < voxel
     m_on = m_near.copy()
-    m_on[m_asked] = _Surfaces.of(query, nearest_in_query[m_asked], every_point=True).holds(
-        m_in_query[m_asked], query.points[nearest_in_query[m_asked]], near)
+    m_on[m_inlier] |= _Surfaces.of(query, nearest_in_query[m_inlier], every_point=True).holds(
+        m_in_query[m_inlier], query.points[nearest_in_query[m_inlier]], near)
     on_surfaces = _covisible_share(query, match, q_in_match, q_on, m_in_query, m_on)
     overlap = max(on_points, SURFACE_CREDIT * on_surfaces)
     return Agreement(overlap, *_constraint(surfaces, q_structure[inlier], R, voxel))

@@ -194,8 +194,10 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise ValueError("--translation-search must be a step in [0, 10] metres")
     if args.trail is not None and not (math.isfinite(args.trail) and 0 <= args.trail <= MAX_TRAIL_M):
         raise ValueError(f"--trail must be a number of metres in [0, {MAX_TRAIL_M:g}]")
-    if not 1 <= args.sequence_length <= 20:
-        raise ValueError("--sequence-length must be an integer in [1, 20]")
+    for flag, length in (("--sequence-length", args.sequence_length),
+                         ("--sc-sequence-length", args.sc_sequence_length)):
+        if not 1 <= length <= 20:
+            raise ValueError(f"{flag} must be an integer in [1, 20]")
     evaluate_mounting.check_arguments(args)
     evaluate_scan_context.check_arguments(args)
     evaluate_verified.check_arguments(args)

@@ -31,8 +31,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def check_arguments(args: argparse.Namespace) -> None:
     if args.dump_sc_matches is not None and not args.scan_context:
         raise ValueError("--dump-sc-matches needs Scan Context: drop --no-scan-context")
-    if not 1 <= args.sc_sequence_length <= 20:
-        raise ValueError("--sc-sequence-length must be an integer in [1, 20]")
 
 
 def config(args: argparse.Namespace) -> ScanContextConfig:
