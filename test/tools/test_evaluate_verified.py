@@ -73,6 +73,27 @@ def test_the_dump_names_the_best_verified_candidate_and_recomputes_the_swept_met
     assert _verified_max_f1(entries, source) == pytest.approx(report["metrics"]["VBRL, verified"]["5"]["max_f1"])
 
 
+def test_a_verified_match_is_the_stored_keyframe_nearest_the_query_along_the_registered_ones_path(verified):
+    """As the node publishes it (detection.nearest_keyframe): the dump's match is the registered
+    candidate or a keyframe nearer the query next to it, one the query's database holds."""
+    _, entries, source, _ = verified
+    positions = np.loadtxt(source / "poses.txt").reshape(-1, 3, 4)[:, :, 3]
+    moved = 0
+    for e in entries:
+        if math.isnan(e["fitness"]):
+            continue
+        registered = e["candidates"][e["candidate_fitness"].index(e["fitness"])]
+        assert e["match"] <= e["query"] - int(EXCLUDE)
+        if e["match"] != registered:
+            moved += 1
+            near, far = (np.linalg.norm(positions[i] - positions[e["query"]]) for i in (e["match"], registered))
+            assert near < far and abs(e["match"] - registered) <= 2, e  # keyframes 4 m apart, 5 m of reach
+    assert moved > 0
+    # what the node would publish at 3 m reads the moved closures too
+    assert _verified_max_f1(entries, source, radius=3.0) == pytest.approx(
+        json.loads((source.parent.parent / "metrics.json").read_text())["metrics"]["VBRL, verified"]["3"]["max_f1"])
+
+
 def test_scan_contexts_dump_recomputes_its_own_verified_row(verified):
     report, entries, source, _ = verified
     sc_entries = json.loads((source.parent.parent / "sc_matches.json").read_text())
@@ -82,15 +103,15 @@ def test_scan_contexts_dump_recomputes_its_own_verified_row(verified):
     assert _verified_max_f1(sc_entries, source) == pytest.approx(sc_row)
 
 
-def _verified_max_f1(entries: list[dict], source: Path) -> float:
-    """Max F1 at 5 m of a verified dump's best candidates scored 1 - fitness."""
+def _verified_max_f1(entries: list[dict], source: Path, radius: float = 5.0) -> float:
+    """Max F1 at ``radius`` of a verified dump's best candidates scored 1 - fitness."""
     positions = np.loadtxt(source / "poses.txt").reshape(-1, 3, 4)[:, :, 3]
     indices = np.full((len(positions), 1), -1)
     scores = np.full((len(positions), 1), np.inf)
     for e in entries:
         if not math.isnan(e["fitness"]):
             indices[e["query"]], scores[e["query"]] = e["match"], 1.0 - e["fitness"]
-    return evaluate_online(positions, indices, scores, 5.0, int(EXCLUDE)).max_f1
+    return evaluate_online(positions, indices, scores, radius, int(EXCLUDE)).max_f1
 
 
 def test_bad_verification_options_say_which(tmp_path, capsys):

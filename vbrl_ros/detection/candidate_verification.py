@@ -20,7 +20,11 @@ from vbrl_ros.detection.settings import DetectorSettings
 
 @dataclass(frozen=True)
 class LoopClosure:
-    """One accepted candidate. ``T_query_match`` maps match-frame points into the query frame."""
+    """One accepted candidate. ``T_query_match`` maps match-frame points into the query frame.
+
+    Verified, the match is the stored keyframe nearest where the registration put the query, along
+    the path of the keyframe registered (:mod:`~vbrl_ros.detection.nearest_keyframe`); ``distance``
+    and ``yaw`` stay the recogniser's, of the keyframe it retrieved."""
 
     query_id: int
     match_id: int

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from vbrl_ros.detection.database_file import MAX_KEYFRAME_ID, SavedDatabase, read_database, write_database
+from vbrl_ros.detection.nearest_keyframe import PathNeighbours, rows_along_path
 from vbrl_ros.detection.odometry_gate import DrivenPath, path_lengths
 from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, KeyframeView, merged_cloud, neighbour_steps
 from vbrl_ros.index.keyframe_index import KeyframeIndex
@@ -187,6 +188,13 @@ class KeyframeDatabase:
             return math.nan, math.nan
         apart = float(np.linalg.norm(self._poses[a, :3, 3] - self._poses[b, :3, 3]))
         return apart, float(abs(self._paths[a] - self._paths[b]))
+
+    def along_path(self, index: int, reach_m: float) -> PathNeighbours:
+        """The keyframes of this one's session next to it within ``reach_m`` metres driven, itself
+        included (:func:`~vbrl_ros.detection.nearest_keyframe.rows_along_path`)."""
+        i, n = self._check_index(index), self._size
+        rows = rows_along_path(i, self._session_index[:n], self._paths[:n], reach_m)
+        return PathNeighbours(rows, self._keyframe_ids[rows], self._stamps[rows], self._poses[rows])
 
     def index_of(self, keyframe_id: int) -> int:
         """Row of a keyframe id; ids are increasing, so a binary search."""

@@ -30,6 +30,7 @@ from vbrl_ros.detection.candidate_verification import (
 )
 from vbrl_ros.detection.corroboration import RecentRegistrations, agrees_with_odometry, registered_position
 from vbrl_ros.detection.database import Candidate, KeyframeDatabase
+from vbrl_ros.detection.nearest_keyframe import REACH_M, nearest_along_path
 from vbrl_ros.detection.odometry_gate import SPARE_FACTOR, kept_with_spares, odometry_heading, too_far_by_odometry
 from vbrl_ros.detection.registration import downsample_for_storage
 from vbrl_ros.detection.settings import DetectorSettings
@@ -97,7 +98,30 @@ class LoopClosureDetector:
         if self.settings.verify and self.settings.corroborated_fitness < self.settings.min_fitness:
             with database_lock or nullcontext():
                 result = self._corroborated(retrieval, result)
+        if self.settings.verify and result.closures:
+            with database_lock or nullcontext():
+                result = replace(result, closures=[self._to_nearest(retrieval, c) for c in result.closures])
         return result
+
+    def _to_nearest(self, retrieval: Retrieval, closure: LoopClosure) -> LoopClosure:
+        """``closure`` handed to the stored keyframe nearest where it put the query, along its match's
+        path (:mod:`~vbrl_ros.detection.nearest_keyframe`), among those the query may close a loop with."""
+        try:
+            row = self.database.index_of(closure.match_id)
+        except KeyError:  # cleared since
+            return closure
+        along = self.database.along_path(row, REACH_M)
+        allowed = along.keyframe_ids != retrieval.keyframe_id
+        if closure.match_session == retrieval.session:  # the recent past is never a candidate
+            allowed &= along.stamps <= retrieval.stamp - self.settings.exclude_recent_s
+        allowed |= along.rows == row
+        rows, poses = along.rows[allowed], along.poses[allowed]
+        nearest, T = nearest_along_path(closure.T_query_match, self.database.pose(row), rows, poses, row)
+        if nearest == row:
+            return closure
+        k = int(np.flatnonzero(rows == nearest)[0])
+        return replace(closure, match_id=int(along.keyframe_ids[allowed][k]),
+                       match_stamp=float(along.stamps[allowed][k]), T_query_match=T)
 
     def _corroborated(self, retrieval: Retrieval, result: KeyframeResult) -> KeyframeResult:
         """``result`` with its weak registrations that the last keyframes corroborate accepted, up to

@@ -1,10 +1,12 @@
 """One method's verified output, scored: select, verify, sweep and decide as ``vbrl eval --verify``
 and ``vbrl loo`` both do, so that the two report the same figures for the same ranking.
 
-From a method's ranking, the candidates the node would verify (:func:`~vbrl_ros.evaluation.verified.plausible_candidates`)
-are registered as the node registers them, from the clouds it would hold (:class:`VerificationInputs`,
-built once per source and shared by every method); the result is scored swept over fitness and at
-the node's settings (:mod:`vbrl_ros.evaluation.verified`).
+From a method's ranking, the candidates the node would verify
+(:func:`~vbrl_ros.evaluation.verified.plausible_candidates`) are registered as the node registers
+them, from the clouds it would hold (:class:`VerificationInputs`, built once per source and shared
+by every method); the result is scored swept over fitness and at the node's settings
+(:mod:`vbrl_ros.evaluation.verified`), each closure handed on to the stored keyframe nearest the
+query as the node hands it on (:func:`nearest_published`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from vbrl_ros.detection.candidate_verification import WIDER_RETRY_NEIGHBOURS
+from vbrl_ros.detection.nearest_keyframe import nearest_along_path, rows_along_path
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, WIDER_NEIGHBOUR_DISTANCE_M
 from vbrl_ros.evaluation.methods import SourceDescriptors
@@ -83,6 +86,9 @@ class VerificationInputs:
     # where odometry places the queries (n, 3) and the stored keyframes (m, 4, 4), each in its session's
     # frame (None without)
     poses: tuple[np.ndarray, np.ndarray] | None = None
+    # the stored keyframes' session as odometry knows it, along which a closure moves to the nearest
+    # keyframe (detection.nearest_keyframe); None without poses
+    database_track: OdometryTrack | None = None
 
     @classmethod
     def of(cls, queries: SourceDescriptors, database: SourceDescriptors,
@@ -90,7 +96,7 @@ class VerificationInputs:
         """``database`` is ``queries`` for P1."""
         poses = None if queries.poses is None or database.poses is None else (queries.poses[:, :3, 3], database.poses)
         return cls(verified_clouds(queries, database, rule), wider_clouds(queries, database, rule),
-                   odometry_track(queries, database), poses)
+                   odometry_track(queries, database), poses, OdometryTrack.of(database.poses))
 
 
 @dataclass(frozen=True)
@@ -102,6 +108,7 @@ class VerifiedOutput:
     candidates: Candidates
     verified: VerifiedCandidates
     best: tuple[np.ndarray, np.ndarray]
+    best_nearest: np.ndarray  # (n, 1) the keyframe the best verified closure is published to (-1: none)
     swept: dict[float, RetrievalMetrics]
     points: dict[float, dict[float, OperatingPoint]]
 
@@ -121,14 +128,36 @@ def verified_output(inputs: VerificationInputs, results: RetrievalResults, rule:
     verified = verify_candidates(*inputs.clouds, candidates, lowest, wider=inputs.wider, odometry=inputs.odometry,
                                  workers=workers, progress=progress, description=description)
     best = best_verified(candidates, verified)
-    swept = score(RetrievalResults(*best, results.database_limit))
+    limits = results.database_limit
+    best_nearest = nearest_published(best[0], candidates, verified, inputs.database_track, limits)
+    swept = score(RetrievalResults(best_nearest, best[1], limits))
     points = {}
     corroboration = None if inputs.poses is None else Corroboration(
         *inputs.poses, rule.corroborated_fitness, None if inputs.odometry is None else inputs.odometry.paths,
         rule.odometry_drift)
     for fitness in fitnesses:
         decided, decision = node_decision(candidates, verified, distance_threshold, fitness, k, corroboration)
+        decided = nearest_published(decided, candidates, verified, inputs.database_track, limits)
         accepted = int(np.isfinite(decision).sum())
         points[fitness] = {r: operating_point(m, accepted)
-                           for r, m in score(RetrievalResults(decided, decision, results.database_limit)).items()}
-    return VerifiedOutput(candidates, verified, best, swept, points)
+                           for r, m in score(RetrievalResults(decided, decision, limits)).items()}
+    return VerifiedOutput(candidates, verified, best, best_nearest, swept, points)
+
+
+def nearest_published(indices: np.ndarray, candidates: Candidates, verified: VerifiedCandidates,
+                      track: OdometryTrack | None, limits: np.ndarray) -> np.ndarray:
+    """``indices`` (n, 1) of verified candidates (-1: none), each handed to the stored keyframe nearest
+    where its registration put the query along its path, as the node hands its closures on
+    (:mod:`~vbrl_ros.detection.nearest_keyframe`); ``track``: the stored keyframes' odometry (None:
+    unchanged), ``limits`` (n,): the database prefix each query saw."""
+    if track is None:
+        return indices
+    out = indices.copy()
+    sessions = np.zeros(len(track.paths), np.int64)
+    for q in np.flatnonzero(indices[:, 0] >= 0):
+        match = int(indices[q, 0])
+        T = verified.T_query_match[q, int(np.flatnonzero(candidates.indices[q] == match)[0])]
+        rows = rows_along_path(match, sessions, track.paths)
+        rows = rows[rows < limits[q]]
+        out[q, 0] = nearest_along_path(T, track.poses[match], rows, track.poses[rows], match)[0]
+    return out

@@ -16,6 +16,10 @@ itself. Unverified closures have NaN pose, fitness and covariance.
     descriptor_yaw                  the recogniser's yaw of T_query<-match, radians (polar
                                     grid; 0 for the Cartesian grid), before verification
 
+A verified closure's match is the stored keyframe nearest where the registration put the
+query, along the path of the keyframe registered; ``distance`` and ``descriptor_yaw`` are
+the recogniser's, of the keyframe it retrieved.
+
 LIO-SAM convention (``lio_sam_topic``): ``Float64MultiArray`` data =
 ``[t_query, t_match]`` per closure.
 """

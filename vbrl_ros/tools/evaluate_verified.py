@@ -129,15 +129,16 @@ def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, databas
 
 
 def best_entries(output: VerifiedOutput) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per query the best verified candidate's (index, distance, fitness); without one, retrieval's
-    own top-1 and fitness NaN."""
+    """Per query the best verified candidate's (keyframe published to, distance, fitness): the
+    keyframe nearest the query along the registered one's path, and the registered one's
+    distance and fitness; without one, retrieval's own top-1 and fitness NaN."""
     candidates, (indices, _) = output.candidates, output.best
     fallback = candidates.indices[:, 0]
     rows = np.arange(len(indices))
     position = np.argmax(candidates.indices == indices, axis=1)
     fitness = output.verified.fitness[rows, position]
     found = indices[:, 0] >= 0
-    return (np.where(found, indices[:, 0], fallback),
+    return (np.where(found, output.best_nearest[:, 0], fallback),
             np.where(found, candidates.distances[rows, position], candidates.distances[:, 0]),
             np.where(found, fitness, math.nan))
 
