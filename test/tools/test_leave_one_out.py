@@ -65,6 +65,31 @@ def test_every_recording_is_scored_by_a_model_trained_without_it(folder, tmp_pat
         assert rows["town_a"][method]["node"] == report["verified"]["at_node_settings"][name]["0.2"]["5"]
 
 
+def test_the_protocols_own_3_m_radius_scores_as_vbrl_eval_does(folder, tmp_path, capsys):
+    out = tmp_path / "loo.json"
+    assert vbrl("loo", folder, "--out-dir", tmp_path / "models", "--json", out, "--no-simulated-towns",
+                "--radius", "3", "--quiet") == 0
+    assert "R = 3 m" in capsys.readouterr().out
+    rows = {row["recording"]: row for row in json.loads(out.read_text())}
+    assert {row["radius_m"] for row in rows.values()} == {3.0}
+    evaluated = tmp_path / "eval.json"
+    assert vbrl("eval", folder / "town_b", "--model", tmp_path / "models" / "without_town_b.npz", "--no-ablations",
+                "--verify", "--json", evaluated, "--quiet") == 0
+    report = json.loads(evaluated.read_text())
+    for method, name in (("vbrl", "VBRL"), ("scan_context", "Scan Context")):
+        row, metrics = rows["town_b"][method], report["metrics"]
+        assert row["revisits"] == metrics[name]["3"]["num_revisits"] != metrics[name]["5"]["num_revisits"]
+        assert (row["max_f1"], row["recall_at_1"]) == (metrics[name]["3"]["max_f1"], metrics[name]["3"]["recall_at_1"])
+        assert row["verified_max_f1"] == metrics[f"{name}, verified"]["3"]["max_f1"]
+        assert row["node"] == report["verified"]["at_node_settings"][name]["0.2"]["3"]
+
+
+def test_a_bad_radius_is_refused_before_any_work(folder, tmp_path, capsys):
+    assert vbrl("loo", folder, "--out-dir", tmp_path / "models", "--radius", "0") == 2
+    assert "--radius must be in (0, 100] metres, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "models").exists()
+
+
 def test_a_folder_with_fewer_than_two_recordings_is_refused(tmp_path, capsys):
     assert vbrl("loo", tmp_path) == 2
     assert "leave-one-out needs at least 2" in capsys.readouterr().err

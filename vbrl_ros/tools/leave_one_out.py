@@ -22,7 +22,7 @@ from vbrl_ros.io.atomic import atomic_write
 from vbrl_ros.tools.evaluate_mounting import add_drift_argument, drift_note
 from vbrl_ros.tools.evaluate_output import json_safe
 
-RADIUS_M = 5.0
+RADIUS_M = 5.0  # the targets' radius; the protocol's own is 3 m (--radius 3)
 EXCLUDE = 50
 
 
@@ -52,6 +52,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="the node's submap_keyframes for verification (default: the node's, 2; "
                              "0: single scans)")
     add_drift_argument(parser)
+    parser.add_argument("--radius", type=float, default=RADIUS_M, metavar="M",
+                        help=f"revisit radius, metres: a query whose match lies within it is right "
+                             f"({RADIUS_M:g}; the P1 protocol's own is 3)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(func=run)
 
@@ -87,6 +90,9 @@ def run(args: argparse.Namespace) -> int:
 
     rule = DetectorSettings() if args.submap_keyframes is None else checked_rule(args.submap_keyframes)
     drift = checked_drift(args.simulate_drift, "--simulate-drift")
+    radius = args.radius
+    if not (math.isfinite(radius) and 0 < radius <= 100):
+        raise ValueError(f"--radius must be in (0, 100] metres, got {radius:g}")
     recordings = recordings_in(args.folder)
     progress = not args.quiet
     config = recognition_config()
@@ -109,17 +115,17 @@ def run(args: argparse.Namespace) -> int:
                                                        if j != k]).model
         path = model.save(args.out_dir / f"without_{held.name}.npz")
         print(f"[{k + 1}/{len(recordings)}] {held.name}: model trained without it -> {path}")
-        rows.append({"recording": held.name, **evaluate(sources[k], model, rule, progress)})
+        rows.append({"recording": held.name, "radius_m": radius, **evaluate(sources[k], model, rule, progress, radius)})
     if drift > 0:
         print(drift_note(drift))
-    print(format_rows(rows))
+    print(format_rows(rows, radius))
     if args.json is not None:
         text = json.dumps(json_safe(rows), indent=1, allow_nan=False)
         atomic_write(args.json, lambda handle: handle.write(text.encode()))
         print(f"table written to {args.json}")
     plot = args.plot or (args.json.with_suffix(".png") if args.json is not None else args.out_dir / "loo.png")
     plot.parent.mkdir(parents=True, exist_ok=True)
-    plot_leave_one_out(rows, plot, title=f"leave-one-recording-out, P1, R = {RADIUS_M:g} m, E = {EXCLUDE}")
+    plot_leave_one_out(rows, plot, title=f"leave-one-recording-out, P1, R = {radius:g} m, E = {EXCLUDE}")
     print(f"bar chart written to {plot}")
     return 0
 
@@ -134,8 +140,8 @@ def checked_rule(submap_keyframes: int):
         raise ValueError(f"--submap-keyframes: {error}") from None
 
 
-def evaluate(source, model, rule, progress: bool) -> dict:
-    """P1 metrics at RADIUS_M of the model and of Scan Context on one described recording:
+def evaluate(source, model, rule, progress: bool, radius: float = RADIUS_M) -> dict:
+    """P1 metrics at ``radius`` of the model and of Scan Context on one described recording:
     retrieval, verified (swept over fitness) and what the node publishes under ``rule`` (the
     detector's settings)."""
     from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
@@ -146,7 +152,7 @@ def evaluate(source, model, rule, progress: bool) -> dict:
     from vbrl_ros.evaluation.verified_output import VerificationInputs, verified_output
 
     def score(results):
-        return {RADIUS_M: evaluate_online(source.positions, results.indices, results.distances, RADIUS_M, EXCLUDE)}
+        return {radius: evaluate_online(source.positions, results.indices, results.distances, radius, EXCLUDE)}
 
     out = {}
     inputs = VerificationInputs.of(source, source, rule)  # once for both methods
@@ -154,13 +160,13 @@ def evaluate(source, model, rule, progress: bool) -> dict:
     for name, method in (("vbrl", VBRLMethod("VBRL", model, prune=0.0001, top_k=width)),
                          ("scan_context", ScanContextMethod(ScanContextConfig()))):
         results = online_retrieval(len(source), EXCLUDE, width, method.distances_fn(source, source), progress)
-        m = score(results)[RADIUS_M]
+        m = score(results)[radius]
         # selected, verified and decided as by vbrl eval --verify: the same figures
         verified = verified_output(inputs, results, rule, score, progress=progress,
                                    description=f"verifying {method.name}")
         out[name] = {"max_f1": m.max_f1, "recall_at_1": m.recall_at_1, "revisits": m.num_revisits,
-                     "verified_max_f1": verified.swept[RADIUS_M].max_f1,
-                     "node": verified.points[rule.min_fitness][RADIUS_M].summary()}
+                     "verified_max_f1": verified.swept[radius].max_f1,
+                     "node": verified.points[rule.min_fitness][radius].summary()}
     return out
 
 
@@ -168,8 +174,8 @@ def _cell(x: float) -> str:
     return "   -  " if x is None or not math.isfinite(x) else f"{x:6.3f}"
 
 
-def format_rows(rows: list[dict]) -> str:
-    lines = [(f"leave-one-recording-out, P1, R = {RADIUS_M:g} m, E = {EXCLUDE}: retrieval max F1 / Recall@1, "
+def format_rows(rows: list[dict], radius: float = RADIUS_M) -> str:
+    lines = [(f"leave-one-recording-out, P1, R = {radius:g} m, E = {EXCLUDE}: retrieval max F1 / Recall@1, "
               "verified max F1, and the node's defaults (verified precision / recall; a recording "
               "without revisits: closures published, all false)"),
              (f"  {'recording':<26s} {'revisits':>8s}   {'VBRL retrieval':>15s} {'verified':>8s} {'node P / R':>13s}"
