@@ -117,6 +117,7 @@ def closure_from(street, forced: int, **settings):
                    candidate_frames=[retrieval.candidate_frames[k]])
     result = detector.verified(only, lambda r: verify_candidates(r, detector.settings))
     assert len(result.closures) == 1, result.rejections
+    assert result.handed_on == int(result.closures[0].match_id != forced)
     stored = {row: first.scan(i).pose for row, i in enumerate(scans)}
     return result.closures[0], stored, query.pose
 

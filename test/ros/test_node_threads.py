@@ -113,5 +113,6 @@ def test_odometry_clouds_closures_and_fast_diagnostics_together(fast_thread_swit
     closures = 20 if verify else 500
     assert s["keyframes_processed"] > 50 and s["loop_closures"] > closures
     assert 0 <= s["corroborated_closures"] <= s["loop_closures"]
+    assert 0 <= s["closures_to_nearer_keyframe"] <= s["loop_closures"]
     edges = collector.messages["/vbrl_node/markers"][-1].markers[1].points
     assert len(edges) > closures

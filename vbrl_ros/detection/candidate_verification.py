@@ -52,6 +52,7 @@ class KeyframeResult:
     # when an earlier keyframe corroborates them (detection.corroboration)
     weak: list[LoopClosure] = field(default_factory=list)
     corroborated: int = 0  # of the closures, how many were accepted so
+    handed_on: int = 0  # of the closures, how many went to a keyframe nearer the query (detection.nearest_keyframe)
 
     @property
     def rejected_by_verification(self) -> int:

@@ -100,7 +100,9 @@ class LoopClosureDetector:
                 result = self._corroborated(retrieval, result)
         if self.settings.verify and result.closures:
             with database_lock or nullcontext():
-                result = replace(result, closures=[self._to_nearest(retrieval, c) for c in result.closures])
+                nearest = [self._to_nearest(retrieval, c) for c in result.closures]
+            moved = sum(a.match_id != b.match_id for a, b in zip(result.closures, nearest))
+            result = replace(result, closures=nearest, handed_on=moved)
         return result
 
     def _to_nearest(self, retrieval: Retrieval, closure: LoopClosure) -> LoopClosure:

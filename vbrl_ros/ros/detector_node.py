@@ -336,7 +336,7 @@ class VbrlNode(Node):
         with self._db_lock:
             self._edges.extend((closure.query_id, closure.match_id) for closure in result.closures)
         self.stats.decided(1e3 * (time.monotonic() - arrived), len(result.closures),
-                           result.rejected_by_verification, result.corroborated)
+                           result.rejected_by_verification, result.corroborated, result.handed_on)
         if result.closures:
             self.closure_pub.publish(closures_message(result.closures))
             for closure in result.closures:

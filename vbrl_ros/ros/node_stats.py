@@ -28,6 +28,7 @@ class StatsSnapshot:
     keyframes: int = 0  # described, searched and stored
     closures: int = 0
     corroborated: int = 0  # of the closures, accepted below min_fitness as the keyframes before agreed
+    handed_on: int = 0  # of the closures, published to a stored keyframe nearer the query than the one registered
     rejected_by_verification: int = 0
     dropped: int = 0  # keyframes replaced by a newer one before the worker took them
     unverified: int = 0  # keyframes whose candidates a newer keyframe's replaced before verification
@@ -82,11 +83,13 @@ class NodeStats:
             self._retrieval_latencies_ms.append(latency_ms)
 
     def decided(self, latency_ms: float, closures: int, rejected_by_verification: int,
-                corroborated: int = 0) -> None:
-        """A keyframe's closures decided ``latency_ms`` after its cloud arrived (``corroborated`` of them)."""
+                corroborated: int = 0, handed_on: int = 0) -> None:
+        """A keyframe's closures decided ``latency_ms`` after its cloud arrived (``corroborated`` of them,
+        ``handed_on`` to a nearer keyframe)."""
         with self._lock:
             self._counts["closures"] += closures
             self._counts["corroborated"] += corroborated
+            self._counts["handed_on"] += handed_on
             self._counts["rejected_by_verification"] += rejected_by_verification
             self._latencies_ms.append(latency_ms)
 

@@ -22,6 +22,7 @@ def diagnostics_status(stats: StatsSnapshot, database_size: int, session: int) -
         "keyframes_processed": stats.keyframes,
         "loop_closures": stats.closures,
         "corroborated_closures": stats.corroborated,
+        "closures_to_nearer_keyframe": stats.handed_on,
         "rejected_by_verification": stats.rejected_by_verification,
         "dropped_scans": stats.dropped,
         "unverified_keyframes": stats.unverified,
