@@ -94,7 +94,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="PR-curve PNG (default: next to --json, else OUT_DIR/pr.png)")
     parser.add_argument("--out-dir", type=Path, default=Path("."), help="for the default plot (.)")
     parser.add_argument("--dump-matches", type=Path, metavar="FILE",
-                        help="per-query top matches of the full VBRL model as JSON")
+                        help="per-query top matches of the full VBRL model as JSON (with --verify, the "
+                             "best verified candidate, published to the keyframe nearest the query as "
+                             "the node publishes it)")
     parser.add_argument("--ablations", action=argparse.BooleanOptionalAction, default=True,
                         help="also evaluate MODEL.<ablation>.npz found next to the model (on)")
     parser.add_argument("--exact", action="store_true",
