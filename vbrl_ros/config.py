@@ -30,6 +30,9 @@ HEIGHT_MAP_MODALITIES: tuple[str, ...] = ("height", "spectrum")
 MODALITY_NAMES: tuple[str, ...] = (*PAPER_MODALITIES, *HEIGHT_MAP_MODALITIES)
 #: The longest trail (features.trail_m) a keyframe is described with: odometry over more drifts.
 MAX_TRAIL_M = 20.0
+#: The longest trail a forward-looking keyframe is described with (features.forward_trail_m):
+#: lidar-inertial odometry over 100 m is good to decimetres.
+MAX_FORWARD_TRAIL_M = 100.0
 
 #: Settings only one kind of grid reads; the other kind must leave them at their
 #: defaults, so that one grid has one dict (and one model identity hash) — see to_dict.
@@ -185,7 +188,10 @@ class FeatureConfig:
     half a turn (:mod:`vbrl_ros.features.field_of_view`), so a reversed pass keeps the same band
     of the world; height-map modalities on a levelled (``grid.frame="ground"``) grid only.
     ``trail_m`` describes a keyframe with the keyframes of the last ``trail_m`` metres of
-    odometry merged in, when its pose is known (:mod:`vbrl_ros.features.trail`; 0 = alone).
+    odometry merged in, when its pose is known (:mod:`vbrl_ros.features.trail`; 0 = alone);
+    ``forward_trail_m`` describes a forward-looking keyframe with the earlier keyframes of the
+    last ``forward_trail_m`` metres that looked at where it stands
+    (:mod:`vbrl_ros.features.forward_trail`; 0 = alone).
     ``drop_weather_clutter`` takes lone points in the air near the sensor (returns from rain,
     snow or dust) out of the height map (:mod:`vbrl_ros.features.weather_clutter`); it
     changes the height-map modalities only.
@@ -208,6 +214,7 @@ class FeatureConfig:
     mirror_field_of_view: bool = False
     drop_weather_clutter: bool = False
     trail_m: float = 0.0
+    forward_trail_m: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "modalities", tuple(self.modalities))
@@ -269,6 +276,12 @@ class FeatureConfig:
             "features.trail_m",
             f"must be a number of metres in [0, {MAX_TRAIL_M:g}], got {self.trail_m!r}",
         )
+        _require(
+            isinstance(self.forward_trail_m, (int, float)) and not isinstance(self.forward_trail_m, bool)
+            and math.isfinite(self.forward_trail_m) and 0.0 <= self.forward_trail_m <= MAX_FORWARD_TRAIL_M,
+            "features.forward_trail_m",
+            f"must be a number of metres in [0, {MAX_FORWARD_TRAIL_M:g}], got {self.forward_trail_m!r}",
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """Every setting; the ones added after the paper's only when not at their defaults,
@@ -287,6 +300,8 @@ class FeatureConfig:
             del out["drop_weather_clutter"]
         if self.trail_m == 0.0:
             del out["trail_m"]
+        if self.forward_trail_m == 0.0:
+            del out["forward_trail_m"]
         return out
 
     @property

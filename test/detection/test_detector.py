@@ -167,6 +167,42 @@ def test_the_detector_describes_keyframes_with_their_trail_as_the_evaluation_doe
     assert all(np.abs(stored[k] - alone[k]).max() > 1e-3 for k in range(1, count))
 
 
+def test_a_forward_looking_keyframe_is_described_with_its_forward_trail_as_the_evaluation_does(tmp_path):
+    """The node's forward trail reaches back less than ``exclude_recent_s``, the evaluation's less
+    than its exclusion in scans: with a keyframe a second, the two describe alike, and neither holds
+    a keyframe the query may be matched with."""
+    import pytest
+
+    from vbrl_ros.datasets.kitti_style import write_kitti_style
+    from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
+    from vbrl_ros.evaluation.methods import describe_source
+
+    sim = pytest.importorskip("vbrl_ros.simulator")
+    town = sim.generate_town(sim.TownConfig(blocks_x=2, blocks_y=2), seed=3)
+    run = sim.simulate_run(town, sim.make_route(town, sim.RouteConfig(loops=1, spacing_m=2.0)),
+                           sim.LidarConfig(beams=16, columns=512, vertical_fov_deg=(-30.0, 30.0),
+                                           blocked_azimuth_deg=(35.0, -35.0)), "summer_clear", seed=1)
+    count, exclude = 16, 6
+    stamps = np.arange(count, dtype=float)  # one keyframe a second: seconds and scans agree
+    folder = write_kitti_style(tmp_path / "run", [run.scan(k).points for k in range(count)],
+                               run.poses[:count], stamps)
+    model = load_default_model()
+    assert model.config.features.forward_trail_m > 0
+    source = describe_source(folder, model.config, ScanContextConfig(), workers=1, progress=False,
+                             exclude=exclude)
+    longer = describe_source(folder, model.config, ScanContextConfig(), workers=1, progress=False,
+                             exclude=count)
+    node = detector(model, exclude_recent_s=float(exclude))
+    poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
+    for k in range(count):
+        points = np.fromfile(folder / "velodyne" / f"{k:06d}.bin", np.float32).reshape(-1, 4)
+        node.process_keyframe(points, stamps[k], pose=np.vstack([poses[k], [0, 0, 0, 1]]))
+    stored = np.stack([node.database.descriptor(k) for k in range(count)])
+    np.testing.assert_allclose(stored, model.scorer().compact(model.standardize(source.vbrl)), atol=1e-5)
+    # the bound decides: reaching back further describes the last keyframes otherwise
+    assert all(np.abs(source.vbrl[k] - longer.vbrl[k]).max() > 1e-3 for k in range(exclude + 1, count))
+
+
 def test_with_odometry_earlier_keyframes_are_matched_by_place():
     """The node hands the database its odometry position: the sequence terms are then the places'
     (index.sequence_matching), so they differ from matching by id once earlier keyframes exist."""

@@ -33,3 +33,23 @@ def test_with_places_the_stream_matches_earlier_queries_by_where_they_were():
     by_id.history.rescore(np.array([4, 6, 30, 40]), np.array([9.0, 9.0, 5.0, 6.0]))
     by_id.reach(1)
     assert by_id.history.rescore(np.array([5]), np.array([3.0]))[0] == pytest.approx((2 * 3.0 + 9.0) / 3)
+
+
+def test_a_trail_stops_at_p1s_exclusion_in_scans_and_p2s_at_the_nodes_seconds(tmp_path):
+    """P1: a trail never holds a scan the protocol lets its query match; P2 (another session's
+    database): as the node's, younger than ``exclude_recent_s`` by the recording's stamps."""
+    from vbrl_ros.datasets.kitti_style import write_kitti_style
+    from vbrl_ros.datasets.registry import open_source
+    from vbrl_ros.detection.settings import DetectorSettings
+    from vbrl_ros.evaluation.methods import trail_horizon
+
+    stamps = 1_700_000_000.0 + 0.1 * np.arange(6)
+    clouds = [np.ones((10, 4), np.float32) * k for k in range(6)]
+    folder = write_kitti_style(tmp_path / "run", clouds, np.tile(np.eye(4), (6, 1, 1)), stamps)
+    with open_source(folder, progress=False) as source:
+        p1 = trail_horizon(source, [1, 3, 5], 50)
+        p2 = trail_horizon(source, [1, 3, 5], None)
+    np.testing.assert_array_equal(p1["stamps"], [1, 3, 5])
+    assert p1["max_age"] == 50
+    np.testing.assert_allclose(p2["stamps"], stamps[[1, 3, 5]])
+    assert p2["max_age"] == DetectorSettings().exclude_recent_s

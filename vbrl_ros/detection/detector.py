@@ -63,7 +63,9 @@ class LoopClosureDetector:
         step = model.translation_search() if settings.translation_search < 0 else settings.translation_search
         self.view_offsets = view_offsets(step)
         self.featurizer = model.featurizer()
-        self.trail = Trail(model.config.features.trail_m)  # the keyframes a keyframe is described with
+        # the keyframes a keyframe is described with: none it may close a loop with
+        self.trail = Trail(model.config.features.trail_m, model.config.features.forward_trail_m,
+                           max_age=settings.exclude_recent_s)
         self.scorer = database.scorer
         self.sequence = SequenceHistory(settings.sequence_length)
         self.recent = RecentRegistrations()  # what the last keyframes registered to, to corroborate with
@@ -179,7 +181,7 @@ class LoopClosureDetector:
         """Describe the keyframe, find its candidates, store it (arguments as :meth:`process_keyframe`)."""
         cfg = self.settings
         t0 = time.perf_counter()
-        described = self.trail.cloud(points, pose, cfg.session)
+        described = self.trail.cloud(points, pose, cfg.session, stamp=stamp)
         frame = self.featurizer.frame(described, gravity, scan=points)
         views = self.scorer.compact(self.model.standardize(
             self.featurizer.describe_views(described, self.view_offsets, frame)))

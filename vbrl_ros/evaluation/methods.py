@@ -21,22 +21,26 @@ from concurrent.futures import ProcessPoolExecutor
 from contextlib import ExitStack
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
 from vbrl_ros.config import VBRLConfig
+from vbrl_ros.datasets.base import ScanSource
 from vbrl_ros.datasets.blocked_wedge import outside_wedge
 from vbrl_ros.datasets.keyframe_selection import keyframe_poses, select_keyframes, source_points
 from vbrl_ros.datasets.mount_tilt import mount_rotation, tilted_points, tilted_poses
 from vbrl_ros.datasets.odometry_drift import drifted_poses
 from vbrl_ros.datasets.registry import open_source
 from vbrl_ros.detection.detector import verification_cloud
+from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.evaluation.baselines.scan_context import (
     ScanContextConfig,
     ScanContextDatabase,
     scan_context,
 )
+from vbrl_ros.evaluation.metrics import DEFAULT_EXCLUDE
 from vbrl_ros.evaluation.retrieval import DistancesFn
 from vbrl_ros.evaluation.verified import TOP_K_RETRIEVED, KeyframeClouds
 from vbrl_ros.features.featurizer import Featurizer
@@ -104,6 +108,15 @@ def _describe(scan: tuple[np.ndarray, np.ndarray | None]) -> tuple[np.ndarray, n
     return views, scan_context(described if sc_trail else points, sc_config), cloud, frame.matrix
 
 
+def trail_horizon(source: ScanSource, indices: Sequence[int], exclude: int | None) -> dict[str, Any]:
+    """``with_trail``'s stamps and max_age: ``exclude`` scans, or (None) the node's
+    ``exclude_recent_s`` in the source's seconds."""
+    if exclude is not None:
+        return {"stamps": np.asarray(indices), "max_age": exclude}
+    return {"stamps": np.asarray(source.stamps, np.float64)[np.asarray(indices, np.int64)],
+            "max_age": DetectorSettings().exclude_recent_s}
+
+
 def describe_source(
     path: Path,
     config: VBRLConfig,
@@ -121,6 +134,7 @@ def describe_source(
     mount_tilt: tuple[float, float] | None = None,
     sc_trail: bool = False,
     odometry_drift_deg: float = 0.0,
+    exclude: int | None = DEFAULT_EXCLUDE,
 ) -> SourceDescriptors:
     """Read the keyframes of ``path`` once and compute both descriptors of each (and the VBRL
     views of :func:`~vbrl_ros.index.translation_search.view_offsets` for ``translation_search`` > 0;
@@ -129,7 +143,10 @@ def describe_source(
     would hide it. ``mount_tilt``: (roll, pitch) degrees every scan and pose is turned by first, as
     if the sensor had been held so (:mod:`vbrl_ros.datasets.mount_tilt`). ``sc_trail``: Scan Context
     reads each keyframe with its trail too, as VBRL does. ``odometry_drift_deg``: what reads
-    odometry reads the poses drifted so (:mod:`vbrl_ros.datasets.odometry_drift`)."""
+    odometry reads the poses drifted so (:mod:`vbrl_ros.datasets.odometry_drift`). A keyframe's
+    trail reaches fewer than ``exclude`` scans back (P1: it never holds a keyframe the query may
+    be matched with); ``exclude`` None: less than the node's default ``exclude_recent_s``, by the
+    source's stamps, as the node's does (P2)."""
     workers = default_workers() if workers is None else workers
     offsets = view_offsets(translation_search)
     init = (config.to_dict(), asdict(sc_config), offsets, verification_voxel, sc_trail)
@@ -148,7 +165,8 @@ def describe_source(
             scans = (points[outside_wedge(points, blocked_azimuth)] for points in scans)
         # None where the scan is described alone: the worker is not sent the same points twice
         pairs = ((points, None if cloud is points else cloud) for points, cloud in
-                 with_trail(scans, poses, config.features.trail_m))
+                 with_trail(scans, poses, config.features.trail_m, config.features.forward_trail_m,
+                            **trail_horizon(source, indices, exclude)))
         bar = tqdm(total=len(indices), desc=f"describing {source.name}", unit="scan",
                    disable=not progress, leave=False)
         vbrl, sc, clouds, frames = [], [], [], []

@@ -100,7 +100,11 @@ class RetrievalMetrics:
         }
 
 
-def online_database_limits(n: int, exclude: int = 50) -> np.ndarray:
+#: P1's default exclusion: a query matches scans recorded at least this many scans before it.
+DEFAULT_EXCLUDE = 50
+
+
+def online_database_limits(n: int, exclude: int = DEFAULT_EXCLUDE) -> np.ndarray:
     """P1: query i sees scans 0..i-exclude, i.e. a prefix of length max(0, i-exclude+1)."""
     if exclude < 1:
         raise ValueError("exclude must be >= 1 (a scan must not match itself)")

@@ -10,11 +10,17 @@ docs/results.md): a longer trail reaches where a revisit from another direction 
 Only the keyframe's own blind wedges count: merged-in keyframes would fill part of the wedge a
 mast hides, and the descriptor would then no longer hide its mirror image
 (:mod:`.blind_wedges`), so merged points in the keyframe's blind wedges and their mirror images
-are dropped. A forward-looking scan is described alone: its trail lies behind it, outside what
-it sees, and adds what a revisit from ahead never saw. A dense scan (``TRAIL_POINTS``) is
-described alone too: it holds its place already, and merged it lost revisits in snow and fog.
+are dropped. A forward-looking scan's last few metres lie behind it, outside what it sees, and
+add what a revisit from ahead never saw; with ``forward_reach_m`` it is described with the
+earlier keyframes of a longer trail that looked at where it stands instead
+(:mod:`.forward_trail`). A dense scan (``TRAIL_POINTS``) that sees around is described alone:
+it holds its place already, and merged it lost revisits in snow and fog.
 The trail fills a keyframe's cloud up to that count, so one just below it takes a few earlier
 points, and its descriptor does not jump between two scans on either side of the count.
+
+No trail holds a keyframe the keyframe may close a loop with: those ``max_age`` or more before
+it (the node's ``exclude_recent_s``; in evaluation, P1's exclusion in scans) are not merged, or a
+short loop would be closed by odometry carrying the earlier scan into the description.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vbrl_ros.features.blind_wedges import BINS, azimuth_bins, blind_runs, empty_bins, sees_around
+from vbrl_ros.features.forward_trail import ForwardTrail
 
 #: At most this many earlier keyframes are kept, however short their spacing.
 MAX_TRAIL_KEYFRAMES = 40
@@ -50,64 +57,95 @@ class _Earlier:
     points: np.ndarray  # (n, 3) float32 in its own sensor frame
     pose: np.ndarray  # T_world_lidar
     travelled: float  # metres of odometry driven up to it
+    stamp: float  # when it was taken (Trail.max_age's unit)
 
 
 class Trail:
-    """The earlier keyframes of one session within ``reach_m`` metres of travel.
+    """The earlier keyframes of one session within ``reach_m`` metres of travel, and of a
+    forward-looking sensor those within ``forward_reach_m`` (0: described alone).
 
     :meth:`cloud` returns the cloud a keyframe is described by and then adds the keyframe to the
     trail. A keyframe without a usable pose, or from another session, starts the trail anew.
     """
 
-    def __init__(self, reach_m: float) -> None:
-        if not (np.isfinite(reach_m) and reach_m >= 0.0):
-            raise ValueError(f"trail reach must be a finite number of metres >= 0, got {reach_m!r}")
+    def __init__(self, reach_m: float, forward_reach_m: float = 0.0, max_age: float = math.inf) -> None:
+        for name, value in (("trail reach", reach_m), ("forward trail reach", forward_reach_m)):
+            if not (np.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be a finite number of metres >= 0, got {value!r}")
+        if not max_age >= 0.0:
+            raise ValueError(f"trail max_age must be >= 0, got {max_age!r}")
         self.reach_m = float(reach_m)
+        self.max_age = float(max_age)
         self._earlier: deque[_Earlier] = deque()
+        self._forward = ForwardTrail(forward_reach_m, max_age)
         self._session: str | None = None
         self._travelled = 0.0
+        self._last_position: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self._earlier)
 
     def clear(self) -> None:
         self._earlier.clear()
+        self._forward.clear()
         self._travelled = 0.0
+        self._last_position = None
 
-    def cloud(self, points: np.ndarray, pose: np.ndarray | None, session: str = "") -> np.ndarray:
+    def cloud(self, points: np.ndarray, pose: np.ndarray | None, session: str = "",
+              stamp: float = math.nan) -> np.ndarray:
         """``points`` (N, >=3) merged with the trail in their own frame, (M, 3); ``points`` itself
-        when there is nothing to merge. ``pose``: T_world_lidar, None when unknown."""
-        if self.reach_m == 0.0:
+        when there is nothing to merge. ``pose``: T_world_lidar, None when unknown. ``stamp``: when
+        it was taken; keyframes ``max_age`` or more before it are not merged (NaN: no limit)."""
+        if self.reach_m == 0.0 and self._forward.reach_m == 0.0:
             return points
+        known = pose is not None and bool(np.all(np.isfinite(pose)))
+        # a forward-looking keyframe has its own trail, whatever its density
+        empty = empty_bins(np.asarray(points)[:, :2].astype(np.float32)) if known and self._forward.reach_m > 0.0 and len(points) else None
+        forward = empty is not None and not sees_around(empty)
         # a dense keyframe is described alone and not kept: a trail of them would hold ~1 MB each
-        usable = pose is not None and bool(np.all(np.isfinite(pose))) and len(points) < TRAIL_POINTS
+        usable = known and (forward or len(points) < TRAIL_POINTS)
         if not usable or session != self._session:
             self.clear()
             self._session = session
             if not usable:
                 return points
         pose = np.asarray(pose, np.float64)
-        if self._earlier:
-            self._travelled += float(np.linalg.norm(pose[:3, 3] - self._earlier[-1].pose[:3, 3]))
-        self._forget_beyond_reach(pose)
+        if self._last_position is not None:
+            self._travelled += float(np.linalg.norm(pose[:3, 3] - self._last_position))
+        self._last_position = pose[:3, 3].copy()
+        self._forget_beyond_reach(pose, stamp)
         xyz = np.array(np.asarray(points)[:, :3], dtype=np.float32)  # a copy: the caller may reuse its buffer
-        merged = self._merged(xyz, pose)
-        self._earlier.append(_Earlier(xyz, pose, self._travelled))
+        if forward:
+            merged = self._forward_merged(xyz, pose, stamp)
+            self._forward.add(xyz, pose, self._travelled, stamp)
+        else:
+            merged = self._merged(xyz, pose, empty)
+        if len(xyz) < TRAIL_POINTS:
+            self._earlier.append(_Earlier(xyz, pose, self._travelled, stamp))
         while len(self._earlier) > MAX_TRAIL_KEYFRAMES:
             self._earlier.popleft()
         return points if merged is None else merged
 
-    def _forget_beyond_reach(self, pose: np.ndarray) -> None:
+    def _forward_merged(self, xyz: np.ndarray, pose: np.ndarray, stamp: float) -> np.ndarray | None:
+        parts = [xyz, *self._forward.merged(xyz, pose, self._travelled, stamp)]
+        if len(parts) == 1:
+            return None
+        merged = np.concatenate(parts)
+        keep = confirmed(merged, np.repeat(np.arange(len(parts)), [len(p) for p in parts]))
+        return merged if keep.all() else merged[keep]
+
+    def _forget_beyond_reach(self, pose: np.ndarray, stamp: float) -> None:
         """Keep the earlier keyframes within reach both along the path and in a straight line (an
-        odometry reset jumps without travelling)."""
+        odometry reset jumps without travelling), and younger than ``max_age``."""
         kept = [e for e in self._earlier if self._travelled - e.travelled <= self.reach_m
-                and np.linalg.norm(e.pose[:3, 3] - pose[:3, 3]) <= self.reach_m]
+                and np.linalg.norm(e.pose[:3, 3] - pose[:3, 3]) <= self.reach_m
+                and not stamp - e.stamp >= self.max_age]
         self._earlier = deque(kept)
 
-    def _merged(self, xyz: np.ndarray, pose: np.ndarray) -> np.ndarray | None:
-        if not self._earlier or not len(xyz):
+    def _merged(self, xyz: np.ndarray, pose: np.ndarray, empty: np.ndarray | None) -> np.ndarray | None:
+        if self.reach_m == 0.0 or not self._earlier or not len(xyz):
             return None
-        empty = empty_bins(xyz[:, :2])
+        empty = empty_bins(xyz[:, :2]) if empty is None else empty
         if not sees_around(empty):
             return None
         to_keyframe = np.linalg.inv(pose)
@@ -162,9 +200,12 @@ def confirmed(points: np.ndarray, keyframe_of: np.ndarray) -> np.ndarray:
 
 
 def with_trail(scans: Iterable[np.ndarray], poses: np.ndarray | None,
-               reach_m: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+               reach_m: float, forward_reach_m: float = 0.0, stamps: np.ndarray | None = None,
+               max_age: float = math.inf) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(scan, the cloud it is described by) of each of ``scans`` in order, one session whose
-    ``poses`` (n, 4, 4) are T_world_lidar (None: no trail)."""
-    trail = Trail(reach_m if poses is not None else 0.0)
+    ``poses`` (n, 4, 4) are T_world_lidar (None: no trail); ``stamps`` and ``max_age`` as
+    :meth:`Trail.cloud`'s."""
+    trail = Trail(reach_m, forward_reach_m, max_age) if poses is not None else Trail(0.0)
     for k, points in enumerate(scans):
-        yield points, trail.cloud(points, None if poses is None else poses[k])
+        yield points, trail.cloud(points, None if poses is None else poses[k],
+                                  stamp=math.nan if stamps is None else float(stamps[k]))

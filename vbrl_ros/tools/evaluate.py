@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from vbrl_ros.config import MAX_TRAIL_M
+from vbrl_ros.config import MAX_FORWARD_TRAIL_M, MAX_TRAIL_M
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.evaluation.by_heading import HeadingRecall, format_heading_recall, recalls_by_heading
 from vbrl_ros.evaluation.matches_json import matches_to_json
@@ -75,6 +75,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="VBRL: describe each keyframe with the keyframes of the last M metres merged "
                              "in by the source's poses, as the node does with odometry (default: the "
                              "model's own setting; 0: each keyframe alone)")
+    parser.add_argument("--forward-trail", type=float, default=None, metavar="M",
+                        help="VBRL: describe each forward-looking keyframe with the keyframes of the "
+                             "last M metres that looked at where it stands, as the node does with "
+                             "odometry (default: the model's own setting; 0: alone)")
     parser.add_argument("--sequence-length", type=int, default=DETECTOR_DEFAULTS.sequence_length, metavar="N",
                         help="VBRL: score each candidate over this many keyframes, the query and the "
                              "ones before it, as the node's sequence_length (default "
@@ -196,6 +200,9 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise ValueError("--translation-search must be a step in [0, 10] metres")
     if args.trail is not None and not (math.isfinite(args.trail) and 0 <= args.trail <= MAX_TRAIL_M):
         raise ValueError(f"--trail must be a number of metres in [0, {MAX_TRAIL_M:g}]")
+    if args.forward_trail is not None and not (math.isfinite(args.forward_trail)
+                                               and 0 <= args.forward_trail <= MAX_FORWARD_TRAIL_M):
+        raise ValueError(f"--forward-trail must be a number of metres in [0, {MAX_FORWARD_TRAIL_M:g}]")
     for flag, length in (("--sequence-length", args.sequence_length),
                          ("--sc-sequence-length", args.sc_sequence_length)):
         if not 1 <= length <= 20:
@@ -226,6 +233,8 @@ def load(args: argparse.Namespace) -> Evaluation:
     config = full.config
     if args.trail is not None:  # describing only: every variant keeps its weights
         config = replace(config, features=replace(config.features, trail_m=float(args.trail)))
+    if args.forward_trail is not None:
+        config = replace(config, features=replace(config.features, forward_trail_m=float(args.forward_trail)))
     notes += in_sample_warnings(full, [args.query, args.against])
     notes += evaluate_mounting.notes(args)
     sc_config = evaluate_scan_context.config(args)
@@ -235,7 +244,9 @@ def load(args: argparse.Namespace) -> Evaluation:
                "translation_search": step,
                "verification_voxel": DETECTOR_DEFAULTS.verification_voxel if args.verify else None,
                "blocked_azimuth": args.blocked_azimuth, "sc_trail": args.sc_trail,
-               "odometry_drift_deg": args.simulate_drift}
+               "odometry_drift_deg": args.simulate_drift,
+               # P1's trails stop short of what the protocol lets a query match; P2's as the node's
+               "exclude": args.exclude if args.against is None else None}
     queries = describe_source(args.query, config, sc_config, mount_tilt=args.mount_tilt, **options)
     database = queries if args.against is None else describe_source(args.against, config, sc_config,
                                                                      **options)

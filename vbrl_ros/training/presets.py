@@ -6,7 +6,8 @@ polar grid (2 m x 12 degrees, 40 m), each modality's block normalised to unit L1
 mirror image of any wedge the sensor did not see hidden, of a tilted sensor only what it would
 also see turned half a turn, returns from rain or snow near the
 sensor left out, each keyframe described with the keyframes of the last 3 m merged in by
-odometry (its trail, when poses are known), and queries also described from viewpoints
+odometry (its trail, when poses are known; of a forward-looking sensor, the keyframes of the last
+60 m that looked at where it stands), and queries also described from viewpoints
 1.5 m around the sensor (translation search).
 """
 
@@ -19,7 +20,8 @@ RECOGNITION_GRID = dict(kind="polar", rings=20, sectors=30, max_range=40.0, z_ed
                         frame="ground")
 RECOGNITION_FEATURES = FeatureConfig(modalities=("height", "spectrum"), min_points=1, normalise=True,
                                      mirror_blind_wedges=True, mirror_field_of_view=True,
-                                     drop_weather_clutter=True, trail_m=3.0)
+                                     drop_weather_clutter=True, trail_m=3.0,
+                                     forward_trail_m=60.0)
 RECOGNITION_TRANSLATION_SEARCH_M = 1.5
 
 
