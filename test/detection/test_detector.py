@@ -182,17 +182,18 @@ def test_a_forward_looking_keyframe_is_described_with_its_forward_trail_as_the_e
     run = sim.simulate_run(town, sim.make_route(town, sim.RouteConfig(loops=1, spacing_m=2.0)),
                            sim.LidarConfig(beams=16, columns=512, vertical_fov_deg=(-30.0, 30.0),
                                            blocked_azimuth_deg=(35.0, -35.0)), "summer_clear", seed=1)
-    count, exclude = 16, 6
+    count, exclude = 16, 12
     stamps = np.arange(count, dtype=float)  # one keyframe a second: seconds and scans agree
     folder = write_kitti_style(tmp_path / "run", [run.scan(k).points for k in range(count)],
                                run.poses[:count], stamps)
     model = load_default_model()
     assert model.config.features.forward_trail_m > 0
     source = describe_source(folder, model.config, ScanContextConfig(), workers=1, progress=False,
-                             exclude=exclude)
+                             exclude=exclude, verification_voxel=DetectorSettings().verification_voxel)
     longer = describe_source(folder, model.config, ScanContextConfig(), workers=1, progress=False,
                              exclude=count)
-    node = detector(model, exclude_recent_s=float(exclude))
+    settings = DetectorSettings(exclude_recent_s=float(exclude))
+    node = LoopClosureDetector(model, KeyframeDatabase(model.scorer(), model.identity()), settings)
     poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
     for k in range(count):
         points = np.fromfile(folder / "velodyne" / f"{k:06d}.bin", np.float32).reshape(-1, 4)
@@ -201,6 +202,12 @@ def test_a_forward_looking_keyframe_is_described_with_its_forward_trail_as_the_e
     np.testing.assert_allclose(stored, model.scorer().compact(model.standardize(source.vbrl)), atol=1e-5)
     # the bound decides: reaching back further describes the last keyframes otherwise
     assert all(np.abs(source.vbrl[k] - longer.vbrl[k]).max() > 1e-3 for k in range(exclude + 1, count))
+    # verified with its forward trail, as the evaluation verifies it: what lay behind it is there
+    last = node.database.cloud(count - 1)
+    np.testing.assert_allclose(last, source.clouds.clouds[count - 1], atol=1e-4)
+    frame = source.clouds.frames[count - 1]
+    behind = (last - frame[:3, 3]) @ frame[:3, :3]  # back in the sensor's axes
+    assert (behind[:, 0] < -1.0).sum() > 50  # the scan alone sees only ahead
 
 
 def test_with_odometry_earlier_keyframes_are_matched_by_place():

@@ -35,6 +35,7 @@ from vbrl_ros.detection.odometry_gate import SPARE_FACTOR, kept_with_spares, odo
 from vbrl_ros.detection.registration import downsample_for_storage
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.detection.submaps import WIDER_NEIGHBOUR_DISTANCE_M
+from vbrl_ros.features.blind_wedges import looks_forward
 from vbrl_ros.features.trail import Trail
 from vbrl_ros.index.sequence_matching import SequenceHistory
 from vbrl_ros.index.translation_search import view_offsets
@@ -196,7 +197,8 @@ class LoopClosureDetector:
         # sorted by distance: the first beyond the threshold ends the list
         candidates = [c for c in found if c.distance <= self.distance_threshold]
         t2 = time.perf_counter()
-        cloud = verification_cloud(points, frame.matrix, cfg.verification_voxel) if cfg.verify else None
+        cloud = verification_cloud(verified_by(points, described), frame.matrix,
+                                   cfg.verification_voxel) if cfg.verify else None
         keyframe_id = self.database.add(views[0], stamp, cfg.session, pose=pose, cloud=cloud,
                                         frame=frame.matrix)
         candidates = [self._gated(c, len(self.database) - 1) for c in candidates]
@@ -264,6 +266,13 @@ def submap_gap_s(settings: DetectorSettings) -> float:
     """How far in time (exclusive) a submap reaches on each side of its keyframe: half the recent
     past that is never a candidate, so no keyframe is in both a query's and its candidate's."""
     return 0.5 * settings.exclude_recent_s
+
+
+def verified_by(points: np.ndarray, described: np.ndarray) -> np.ndarray:
+    """The cloud a keyframe is verified with: a forward-looking keyframe's forward trail, which
+    a pass from the other way shares (its own 70° does not: features/forward_trail.py), and
+    otherwise the scan alone."""
+    return described if described is not points and looks_forward(points) else points
 
 
 def verification_cloud(points: np.ndarray, frame: np.ndarray, voxel: float) -> np.ndarray:

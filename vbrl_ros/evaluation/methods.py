@@ -33,7 +33,7 @@ from vbrl_ros.datasets.keyframe_selection import keyframe_poses, select_keyframe
 from vbrl_ros.datasets.mount_tilt import mount_rotation, tilted_points, tilted_poses
 from vbrl_ros.datasets.odometry_drift import drifted_poses
 from vbrl_ros.datasets.registry import open_source
-from vbrl_ros.detection.detector import verification_cloud
+from vbrl_ros.detection.detector import verification_cloud, verified_by
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.evaluation.baselines.scan_context import (
     ScanContextConfig,
@@ -104,7 +104,7 @@ def _describe(scan: tuple[np.ndarray, np.ndarray | None]) -> tuple[np.ndarray, n
     described = points if described is None else described
     frame = featurizer.frame(described, scan=points)
     views = featurizer.describe_views(described, offsets, frame)
-    cloud = None if voxel is None else verification_cloud(points, frame.matrix, voxel)
+    cloud = None if voxel is None else verification_cloud(verified_by(points, described), frame.matrix, voxel)
     return views, scan_context(described if sc_trail else points, sc_config), cloud, frame.matrix
 
 

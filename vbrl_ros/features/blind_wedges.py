@@ -47,6 +47,12 @@ def sees_around(empty: np.ndarray) -> bool:
     return bool(1.0 - empty.mean() >= MIN_SEEN_FRACTION)
 
 
+def looks_forward(points: np.ndarray) -> bool:
+    """Whether a scan (N, >=2) saw less than ``MIN_SEEN_FRACTION`` of the circle: a forward-looking
+    sensor's."""
+    return len(points) > 0 and not sees_around(empty_bins(np.asarray(points)[:, :2].astype(np.float32)))
+
+
 def blind_bins(xy: np.ndarray, bins: np.ndarray | None = None) -> np.ndarray:
     """(BINS,) bool: the azimuth bins inside runs of at least ``MIN_BLIND_DEG`` with no point
     beyond ``MIN_RANGE_M``; all False when the scan saw less than ``MIN_SEEN_FRACTION``.
