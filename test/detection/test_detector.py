@@ -168,9 +168,9 @@ def test_the_detector_describes_keyframes_with_their_trail_as_the_evaluation_doe
 
 
 def test_a_forward_looking_keyframe_is_described_with_its_forward_trail_as_the_evaluation_does(tmp_path):
-    """The node's forward trail reaches back less than ``exclude_recent_s``, the evaluation's less
-    than its exclusion in scans: with a keyframe a second, the two describe alike, and neither holds
-    a keyframe the query may be matched with."""
+    """The node's forward trail reaches back less than half ``exclude_recent_s``, the evaluation's
+    less than half its exclusion in scans (as far as a submap reaches): with a keyframe a second,
+    the two describe alike, and neither holds a keyframe a candidate or its submap holds."""
     import pytest
 
     from vbrl_ros.datasets.kitti_style import write_kitti_style
@@ -182,7 +182,7 @@ def test_a_forward_looking_keyframe_is_described_with_its_forward_trail_as_the_e
     run = sim.simulate_run(town, sim.make_route(town, sim.RouteConfig(loops=1, spacing_m=2.0)),
                            sim.LidarConfig(beams=16, columns=512, vertical_fov_deg=(-30.0, 30.0),
                                            blocked_azimuth_deg=(35.0, -35.0)), "summer_clear", seed=1)
-    count, exclude = 16, 12
+    count, exclude = 28, 24
     stamps = np.arange(count, dtype=float)  # one keyframe a second: seconds and scans agree
     folder = write_kitti_style(tmp_path / "run", [run.scan(k).points for k in range(count)],
                                run.poses[:count], stamps)
@@ -191,7 +191,7 @@ def test_a_forward_looking_keyframe_is_described_with_its_forward_trail_as_the_e
     source = describe_source(folder, model.config, ScanContextConfig(), workers=1, progress=False,
                              exclude=exclude, verification_voxel=DetectorSettings().verification_voxel)
     longer = describe_source(folder, model.config, ScanContextConfig(), workers=1, progress=False,
-                             exclude=count)
+                             exclude=2 * exclude)
     settings = DetectorSettings(exclude_recent_s=float(exclude))
     node = LoopClosureDetector(model, KeyframeDatabase(model.scorer(), model.identity()), settings)
     poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
@@ -201,7 +201,7 @@ def test_a_forward_looking_keyframe_is_described_with_its_forward_trail_as_the_e
     stored = np.stack([node.database.descriptor(k) for k in range(count)])
     np.testing.assert_allclose(stored, model.scorer().compact(model.standardize(source.vbrl)), atol=1e-5)
     # the bound decides: reaching back further describes the last keyframes otherwise
-    assert all(np.abs(source.vbrl[k] - longer.vbrl[k]).max() > 1e-3 for k in range(exclude + 1, count))
+    assert all(np.abs(source.vbrl[k] - longer.vbrl[k]).max() > 1e-3 for k in range(exclude // 2 + 1, count))
     # verified with its forward trail, as the evaluation verifies it: what lay behind it is there
     last = node.database.cloud(count - 1)
     np.testing.assert_allclose(last, source.clouds.clouds[count - 1], atol=1e-4)

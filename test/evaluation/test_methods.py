@@ -36,8 +36,9 @@ def test_with_places_the_stream_matches_earlier_queries_by_where_they_were():
 
 
 def test_a_trail_stops_at_p1s_exclusion_in_scans_and_p2s_at_the_nodes_seconds(tmp_path):
-    """P1: a trail never holds a scan the protocol lets its query match; P2 (another session's
-    database): as the node's, younger than ``exclude_recent_s`` by the recording's stamps."""
+    """P1: a trail never holds a scan the protocol lets its query match, nor one of that scan's
+    submap; P2 (another session's database): as the node's, younger than half
+    ``exclude_recent_s`` by the recording's stamps."""
     from vbrl_ros.datasets.kitti_style import write_kitti_style
     from vbrl_ros.datasets.registry import open_source
     from vbrl_ros.detection.settings import DetectorSettings
@@ -50,6 +51,6 @@ def test_a_trail_stops_at_p1s_exclusion_in_scans_and_p2s_at_the_nodes_seconds(tm
         p1 = trail_horizon(source, [1, 3, 5], 50)
         p2 = trail_horizon(source, [1, 3, 5], None)
     np.testing.assert_array_equal(p1["stamps"], [1, 3, 5])
-    assert p1["max_age"] == 50
+    assert p1["max_age"] == 25  # half: as far as a candidate's submap reaches
     np.testing.assert_allclose(p2["stamps"], stamps[[1, 3, 5]])
-    assert p2["max_age"] == DetectorSettings().exclude_recent_s
+    assert p2["max_age"] == DetectorSettings().exclude_recent_s / 2

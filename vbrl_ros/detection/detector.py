@@ -64,9 +64,9 @@ class LoopClosureDetector:
         step = model.translation_search() if settings.translation_search < 0 else settings.translation_search
         self.view_offsets = view_offsets(step)
         self.featurizer = model.featurizer()
-        # the keyframes a keyframe is described with: none it may close a loop with
+        # the keyframes a keyframe is described with: as a submap, none a candidate's submap holds
         self.trail = Trail(model.config.features.trail_m, model.config.features.forward_trail_m,
-                           max_age=settings.exclude_recent_s)
+                           max_age=submap_gap_s(settings))
         self.scorer = database.scorer
         self.sequence = SequenceHistory(settings.sequence_length)
         self.recent = RecentRegistrations()  # what the last keyframes registered to, to corroborate with

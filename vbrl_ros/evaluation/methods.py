@@ -33,7 +33,7 @@ from vbrl_ros.datasets.keyframe_selection import keyframe_poses, select_keyframe
 from vbrl_ros.datasets.mount_tilt import mount_rotation, tilted_points, tilted_poses
 from vbrl_ros.datasets.odometry_drift import drifted_poses
 from vbrl_ros.datasets.registry import open_source
-from vbrl_ros.detection.detector import verification_cloud, verified_by
+from vbrl_ros.detection.detector import submap_gap_s, verification_cloud, verified_by
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.evaluation.baselines.scan_context import (
     ScanContextConfig,
@@ -109,12 +109,12 @@ def _describe(scan: tuple[np.ndarray, np.ndarray | None]) -> tuple[np.ndarray, n
 
 
 def trail_horizon(source: ScanSource, indices: Sequence[int], exclude: int | None) -> dict[str, Any]:
-    """``with_trail``'s stamps and max_age: ``exclude`` scans, or (None) the node's
-    ``exclude_recent_s`` in the source's seconds."""
+    """``with_trail``'s stamps and max_age: half ``exclude`` in scans, or (None) half the node's
+    ``exclude_recent_s`` in the source's seconds, as a submap reaches (detection/submaps.py)."""
     if exclude is not None:
-        return {"stamps": np.asarray(indices), "max_age": exclude}
+        return {"stamps": np.asarray(indices), "max_age": 0.5 * exclude}
     return {"stamps": np.asarray(source.stamps, np.float64)[np.asarray(indices, np.int64)],
-            "max_age": DetectorSettings().exclude_recent_s}
+            "max_age": submap_gap_s(DetectorSettings())}
 
 
 def describe_source(
@@ -144,9 +144,9 @@ def describe_source(
     if the sensor had been held so (:mod:`vbrl_ros.datasets.mount_tilt`). ``sc_trail``: Scan Context
     reads each keyframe with its trail too, as VBRL does. ``odometry_drift_deg``: what reads
     odometry reads the poses drifted so (:mod:`vbrl_ros.datasets.odometry_drift`). A keyframe's
-    trail reaches fewer than ``exclude`` scans back (P1: it never holds a keyframe the query may
-    be matched with); ``exclude`` None: less than the node's default ``exclude_recent_s``, by the
-    source's stamps, as the node's does (P2)."""
+    trail reaches back less than half ``exclude`` scans (P1: it never holds a keyframe a
+    candidate, or a candidate's submap, holds); ``exclude`` None: less than half the node's
+    default ``exclude_recent_s``, by the source's stamps, as the node's does (P2)."""
     workers = default_workers() if workers is None else workers
     offsets = view_offsets(translation_search)
     init = (config.to_dict(), asdict(sc_config), offsets, verification_voxel, sc_trail)

@@ -18,9 +18,11 @@ it holds its place already, and merged it lost revisits in snow and fog.
 The trail fills a keyframe's cloud up to that count, so one just below it takes a few earlier
 points, and its descriptor does not jump between two scans on either side of the count.
 
-No trail holds a keyframe the keyframe may close a loop with: those ``max_age`` or more before
-it (the node's ``exclude_recent_s``; in evaluation, P1's exclusion in scans) are not merged, or a
-short loop would be closed by odometry carrying the earlier scan into the description.
+No trail holds a keyframe the keyframe may close a loop with, nor one a candidate's submap holds:
+those ``max_age`` or more before it (half the node's ``exclude_recent_s``, as far as a submap
+reaches; in evaluation, half P1's exclusion in scans) are not merged, or a short loop would be
+closed by odometry carrying the earlier scan into the description (and into the verification
+cloud of a forward-looking keyframe).
 """
 
 from __future__ import annotations

@@ -33,7 +33,7 @@ def described_clouds(source: ScanSource, indices: Sequence[int],
                      config: VBRLConfig) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(points, the cloud it is described by: with its trail) of the keyframes ``indices`` of ``source``."""
     return with_trail(source_points(source, indices), keyframe_poses(source, indices), config.features.trail_m,
-                      config.features.forward_trail_m, stamps=np.asarray(indices), max_age=DEFAULT_EXCLUDE)
+                      config.features.forward_trail_m, stamps=np.asarray(indices), max_age=0.5 * DEFAULT_EXCLUDE)
 
 
 def source_labels(paths: list[Path], labels: list[str] | None) -> list[str]:
