@@ -83,8 +83,8 @@ def measure(repeats: int = 30, config: VBRLConfig | None = None) -> dict[str, An
                              warmup=10)
     ahead = forward_looking(scan)
     forward_keyframes = int(recognition.config.features.forward_trail_m / FORWARD_SPACING_M)
-    forward_s = median_seconds(forward_keyframes_with_trail(recognition, ahead, offsets), repeats,
-                               warmup=forward_keyframes + 2)  # a full trail
+    forward_s = median_seconds(sparse_keyframes_with_trail(recognition, ahead, offsets, FORWARD_SPACING_M),
+                               repeats, warmup=forward_keyframes + 2)  # a full trail
     solver = time_one_iteration(n=700, d=featurizer.dimension)
     return {
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
@@ -125,12 +125,6 @@ def sparse_keyframes_with_trail(featurizer: Featurizer, scan: np.ndarray, offset
     return next_keyframe
 
 
-def forward_keyframes_with_trail(featurizer: Featurizer, scan: np.ndarray, offsets: np.ndarray) -> Callable[[], Any]:
-    """:func:`sparse_keyframes_with_trail` for a forward-looking sensor driving ahead, keyframes
-    ``FORWARD_SPACING_M`` apart: each merges the earlier keyframes of its forward trail."""
-    return sparse_keyframes_with_trail(featurizer, scan, offsets, FORWARD_SPACING_M)
-
-
 def forward_looking(scan: np.ndarray) -> np.ndarray:
     """What of ``scan`` a forward-looking sensor sees: the points within ``FORWARD_HALF_FIELD_DEG``
     of straight ahead."""
@@ -151,15 +145,11 @@ def format_table(results: dict[str, Any]) -> str:
                               *results["describe_recognition_tilted"]["tilt_deg"]),
                            results["describe_recognition_tilted"]))
     ] + [
-        (f"describe a sparse keyframe with its {t['trail_m']:g} m trail, built-in",
+        (f"describe a {kind} keyframe with its {t['trail_m']:g} m {trail}, built-in",
          f"{t['points']:,} points a keyframe, {t['spacing_m']:g} m apart",
          f"{t['median_ms']:.2f} ms", f"<= {t['target_ms']:.0f} ms", "ok" if t["median_ms"] <= t["target_ms"] else "MISSED")
-        for t in (results["describe_trail"],)
-    ] + [
-        (f"describe a forward-looking keyframe with its {t['trail_m']:g} m forward trail, built-in",
-         f"{t['points']:,} points a keyframe, {t['spacing_m']:g} m apart",
-         f"{t['median_ms']:.2f} ms", f"<= {t['target_ms']:.0f} ms", "ok" if t["median_ms"] <= t["target_ms"] else "MISSED")
-        for t in (results["describe_forward_trail"],)
+        for kind, trail, t in (("sparse", "trail", results["describe_trail"]),
+                               ("forward-looking", "forward trail", results["describe_forward_trail"]))
     ] + sequence_rows(results["sequence_matching"]) + [
         ("solver iteration, fast path", f"n={s['n']}, d={s['d']} ({s['fast_path']})",
          f"{1e3 * s['fast_s']:.1f} ms", "", ""),

@@ -112,9 +112,15 @@ def trail_horizon(source: ScanSource, indices: Sequence[int], exclude: int | Non
     """``with_trail``'s stamps and max_age: half ``exclude`` in scans, or (None) half the node's
     ``exclude_recent_s`` in the source's seconds, as a submap reaches (detection/submaps.py)."""
     if exclude is not None:
-        return {"stamps": np.asarray(indices), "max_age": 0.5 * exclude}
+        return scan_trail_horizon(indices, exclude)
     return {"stamps": np.asarray(source.stamps, np.float64)[np.asarray(indices, np.int64)],
             "max_age": submap_gap_s(DetectorSettings())}
+
+
+def scan_trail_horizon(indices: Sequence[int], exclude: int = DEFAULT_EXCLUDE) -> dict[str, Any]:
+    """``with_trail``'s stamps and max_age counted in scans: less than half ``exclude`` back, so a
+    trail never holds a scan a candidate, or its submap, holds."""
+    return {"stamps": np.asarray(indices), "max_age": 0.5 * exclude}
 
 
 def describe_source(

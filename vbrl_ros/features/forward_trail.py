@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -72,9 +73,8 @@ class ForwardTrail:
         """The earlier keyframes' points that describe ``xyz``'s place, in its frame: one array per
         earlier keyframe that saw its position, nearest first (empty: none did). Those ``max_age``
         or more before ``stamp`` are forgotten (NaN: no limit)."""
-        self._kept = deque(k for k in self._kept if travelled - k.travelled <= self.reach_m
-                           and np.linalg.norm(k.pose[:3, 3] - pose[:3, 3]) <= self.reach_m
-                           and not stamp - k.stamp >= self.max_age)
+        self._kept = deque(k for k in self._kept
+                           if within_reach(k, travelled, pose, stamp, self.reach_m, self.max_age))
         to_keyframe = np.linalg.inv(pose)
         parts: list[np.ndarray] = []
         total = 0
@@ -101,6 +101,17 @@ class ForwardTrail:
         if len(xyz):
             np.maximum.at(reach, azimuth_bins(xyz[:, :2]), np.hypot(xyz[:, 0], xyz[:, 1]))
         self._kept.append(_Looked(thinned(xyz), pose, travelled, stamp, reach))
+
+
+def within_reach(earlier: Any, travelled: float, pose: np.ndarray, stamp: float,
+                 reach_m: float, max_age: float) -> bool:
+    """Whether a trail still holds ``earlier`` (with ``pose``, ``travelled`` and ``stamp``) for a
+    keyframe at ``pose``, ``travelled`` and ``stamp``: within ``reach_m`` along the path and in a
+    straight line (an odometry reset jumps without travelling), and younger than ``max_age``
+    (NaN stamps: no limit)."""
+    return (travelled - earlier.travelled <= reach_m
+            and float(np.linalg.norm(earlier.pose[:3, 3] - pose[:3, 3])) <= reach_m
+            and not stamp - earlier.stamp >= max_age)
 
 
 def saw(kept: _Looked, position: np.ndarray) -> bool:

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vbrl_ros.features.blind_wedges import BINS, azimuth_bins, blind_runs, empty_bins, sees_around
-from vbrl_ros.features.forward_trail import ForwardTrail
+from vbrl_ros.features.forward_trail import ForwardTrail, within_reach
 
 #: At most this many earlier keyframes are kept, however short their spacing.
 MAX_TRAIL_KEYFRAMES = 40
@@ -130,19 +130,13 @@ class Trail:
 
     def _forward_merged(self, xyz: np.ndarray, pose: np.ndarray, stamp: float) -> np.ndarray | None:
         parts = [xyz, *self._forward.merged(xyz, pose, self._travelled, stamp)]
-        if len(parts) == 1:
-            return None
-        merged = np.concatenate(parts)
-        keep = confirmed(merged, np.repeat(np.arange(len(parts)), [len(p) for p in parts]))
-        return merged if keep.all() else merged[keep]
+        return None if len(parts) == 1 else merged_confirmed(parts)
 
     def _forget_beyond_reach(self, pose: np.ndarray, stamp: float) -> None:
         """Keep the earlier keyframes within reach both along the path and in a straight line (an
         odometry reset jumps without travelling), and younger than ``max_age``."""
-        kept = [e for e in self._earlier if self._travelled - e.travelled <= self.reach_m
-                and np.linalg.norm(e.pose[:3, 3] - pose[:3, 3]) <= self.reach_m
-                and not stamp - e.stamp >= self.max_age]
-        self._earlier = deque(kept)
+        self._earlier = deque(e for e in self._earlier
+                              if within_reach(e, self._travelled, pose, stamp, self.reach_m, self.max_age))
 
     def _merged(self, xyz: np.ndarray, pose: np.ndarray, empty: np.ndarray | None) -> np.ndarray | None:
         if self.reach_m == 0.0 or not self._earlier or not len(xyz):
@@ -162,13 +156,19 @@ class Trail:
             T = to_keyframe @ earlier.pose
             parts.append((points @ T[:3, :3].T + T[:3, 3]).astype(np.float32))
             total += len(points)
-        merged = np.concatenate(parts)
-        keep = confirmed(merged, np.repeat(np.arange(len(parts)), [len(p) for p in parts]))
         blind = blind_runs(empty)
-        hidden = blind | np.roll(blind, BINS // 2)
-        if hidden.any():
-            keep &= ~hidden[azimuth_bins(merged[:, :2])]
-        return merged if keep.all() else merged[keep]
+        return merged_confirmed(parts, blind | np.roll(blind, BINS // 2))
+
+
+def merged_confirmed(parts: list[np.ndarray], hidden: np.ndarray | None = None) -> np.ndarray:
+    """The keyframe's points (``parts[0]``) with its trail's (the rest), each earlier point near
+    the sensor only where another keyframe confirms it (:func:`confirmed`), and none in the
+    azimuth bins ``hidden`` (the keyframe's blind wedges and their mirror images)."""
+    merged = np.concatenate(parts)
+    keep = confirmed(merged, np.repeat(np.arange(len(parts)), [len(p) for p in parts]))
+    if hidden is not None and hidden.any():
+        keep &= ~hidden[azimuth_bins(merged[:, :2])]
+    return merged if keep.all() else merged[keep]
 
 
 def confirmed(points: np.ndarray, keyframe_of: np.ndarray) -> np.ndarray:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from vbrl_ros.config import VBRLConfig
-from vbrl_ros.evaluation.metrics import DEFAULT_EXCLUDE
+from vbrl_ros.evaluation.methods import scan_trail_horizon
 from vbrl_ros.features.parallel import featurize
 from vbrl_ros.features.trail import with_trail
 from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
@@ -72,7 +72,7 @@ def simulated_recognition_data(towns: tuple[SimulatedTown, ...], config: VBRLCon
         run = simulate_run(town, route, lidar, town_spec.scenario, seed=town_spec.run_seed)
         name = f"town{town_spec.town_seed}_{town_spec.sensor_height_m:g}m_{town_spec.beams}beams"
         scans = with_trail((scan.points for scan in run), run.poses, config.features.trail_m,
-                           config.features.forward_trail_m, stamps=np.arange(len(run)), max_age=0.5 * DEFAULT_EXCLUDE)
+                           config.features.forward_trail_m, **scan_trail_horizon(range(len(run))))
         descriptors = featurize(scans, config, total=len(run),
                                 progress=progress, description=f"simulating {name}")
         out.append((name, descriptors, run.poses[:, :3, 3]))
