@@ -6,6 +6,7 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from vbrl_ros.bench.process_usage import ProcessSampler, tree
@@ -43,3 +44,23 @@ def test_bench_node_replays_a_tiny_drive_and_prints_its_table(tmp_path):
             == row["clouds_received"])
     assert row["keyframes_processed"] > 0 and row["node_cpu_percent"] > 0 and row["peak_rss_mb"] > 100
     assert "1x    30/30" in result.stdout
+
+
+def test_a_forward_looking_drive_is_rendered_as_one_and_kept_apart(tmp_path):
+    from vbrl_ros.bench.node_load import Drive, drive_bag, seen_degrees
+    from vbrl_ros.datasets.rosbag import RosbagSource
+
+    forward = Drive(scans=2, blocked_azimuth_deg=(35.0, -35.0), vertical_fov_deg=(-38.0, 38.0))
+    # the rendered bag is reused by name: another sensor must not find this one's
+    assert forward.name() != Drive(scans=2).name()
+    assert seen_degrees(35.0, -35.0) == 70.0 and seen_degrees(150.0, -150.0) == 300.0
+    assert forward.sensor() == "64-beam LiDAR, 70° seen" and Drive().sensor() == "64-beam LiDAR"
+    bag, count = drive_bag(forward, tmp_path)
+    assert count == 2
+    with RosbagSource(bag) as source:
+        xyz = source[1].points[:, :3].astype(np.float64)
+    assert len(xyz) > 1000
+    azimuth = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
+    elevation = np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
+    assert np.abs(azimuth).max() <= 35.5 and np.abs(azimuth).max() >= 33.0  # the whole 70°, no more
+    assert elevation.max() <= 38.5 and elevation.max() > 20.0  # the wider field, not 64 beams' +15°

@@ -36,11 +36,26 @@ class Drive:
     blocks: int = 1
     town_seed: int = 5
     scans: int | None = None  # only the first so many (None: the whole drive)
+    vertical_fov_deg: tuple[float, float] | None = None  # None: the simulator's for ``beams``
+    blocked_azimuth_deg: tuple[float, float] | None = None  # (35, -35): a forward-looking 70°
 
     def name(self) -> str:
         limit = f"_{self.scans}scans" if self.scans else ""
-        return (f"drive_{self.beams}x{self.columns}_{self.rate_hz:g}hz_{self.speed_mps:g}mps_"
+        fov = "" if self.vertical_fov_deg is None else "_fov{:g}to{:g}".format(*self.vertical_fov_deg)
+        blocked = "" if self.blocked_azimuth_deg is None else "_blocked{:g}to{:g}".format(*self.blocked_azimuth_deg)
+        return (f"drive_{self.beams}x{self.columns}{fov}{blocked}_{self.rate_hz:g}hz_{self.speed_mps:g}mps_"
                 f"{self.loops}loops_{self.blocks}blocks_town{self.town_seed}{limit}")
+
+    def sensor(self) -> str:
+        """The sensor in words, for the table's heading."""
+        seen = "" if self.blocked_azimuth_deg is None else f", {seen_degrees(*self.blocked_azimuth_deg):g}° seen"
+        return f"{self.beams}-beam LiDAR{seen}"
+
+
+def seen_degrees(blocked_from: float, blocked_to: float) -> float:
+    """The azimuth a sensor sees round the circle when the wedge swept counter-clockwise from
+    ``blocked_from`` to ``blocked_to`` (degrees) is blocked."""
+    return 360.0 - (blocked_to - blocked_from) % 360.0
 
 
 def drive_bag(drive: Drive, out_dir: Path, progress: bool = False) -> tuple[Path, int]:
@@ -58,7 +73,9 @@ def drive_bag(drive: Drive, out_dir: Path, progress: bool = False) -> tuple[Path
     town = generate_town(TownConfig(blocks_x=drive.blocks, blocks_y=drive.blocks), seed=drive.town_seed)
     route = make_route(town, RouteConfig(loops=drive.loops, spacing_m=None, rate_hz=drive.rate_hz,
                                          speed_mps=drive.speed_mps))
-    run = simulate_run(town, route, LidarConfig(beams=drive.beams, columns=drive.columns), "summer_clear", seed=1)
+    lidar = LidarConfig(beams=drive.beams, columns=drive.columns, vertical_fov_deg=drive.vertical_fov_deg,
+                        blocked_azimuth_deg=drive.blocked_azimuth_deg)
+    run = simulate_run(town, route, lidar, "summer_clear", seed=1)
     count = min(len(run), drive.scans or len(run))
     path = out_dir / drive.name()
     if not (path / "metadata.yaml").is_file():
@@ -107,7 +124,8 @@ def measure(rates: tuple[float, ...], drive: Drive, out_dir: Path, *, node_param
 
 def format_table(results: dict) -> str:
     d = results["drive"]
-    head = (f"vbrl_node on a simulated drive ({d['beams']}-beam LiDAR at {d['rate_hz']:g} Hz, "
+    sensor = Drive(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}).sensor()
+    head = (f"vbrl_node on a simulated drive ({sensor} at {d['rate_hz']:g} Hz, "
             f"{d['speed_mps']:g} m/s, keyframes every 1 m), replayed over DDS; latency from a cloud's "
             f"arrival until its closures are decided (stored: until it is described, searched and stored)")
     header = ("rate", "clouds sent/received", "lost", "keyframes processed/dropped", "unverified",

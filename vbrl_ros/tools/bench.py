@@ -65,6 +65,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     node.add_argument("--scans", type=int, metavar="N", help="replay only the drive's first N clouds")
     node.add_argument("--beams", type=int, default=64, help="LiDAR beams of the drive (default 64)")
     node.add_argument("--columns", type=int, default=1800, help="LiDAR columns per turn (default 1800)")
+    node.add_argument("--vertical-fov", nargs=2, type=float, default=None, metavar=("LOW", "HIGH"),
+                      help="the drive's vertical field of view, degrees (default: the simulator's for --beams)")
+    node.add_argument("--blocked-azimuth", nargs=2, type=float, default=None, metavar=("FROM", "TO"),
+                      help="a wedge the drive's sensor cannot see, degrees swept counter-clockwise "
+                           "(35 -35: a forward-looking 70°, as vbrl simulate's)")
     node.add_argument("--node-param", action="append", default=[], metavar="NAME:=VALUE",
                       help="a vbrl_node parameter for every run (repeatable)")
     node.add_argument("--out-dir", type=Path, default=Path("runs/bench-node"),
@@ -136,7 +141,9 @@ def run_node(args: argparse.Namespace) -> int:
 
     if args.scans is not None and args.scans < 2:
         raise ValueError("--scans must be >= 2")
-    drive = node_load.Drive(beams=args.beams, columns=args.columns, scans=args.scans)
+    drive = node_load.Drive(beams=args.beams, columns=args.columns, scans=args.scans,
+                            vertical_fov_deg=None if args.vertical_fov is None else tuple(args.vertical_fov),
+                            blocked_azimuth_deg=None if args.blocked_azimuth is None else tuple(args.blocked_azimuth))
     results = node_load.measure(args.rates, drive, args.out_dir, node_params=tuple(args.node_param),
                                 progress=not args.quiet)
     print(node_load.format_table(results), flush=True)
