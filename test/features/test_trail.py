@@ -189,7 +189,7 @@ def test_a_keyframe_just_below_the_fill_takes_only_a_few_earlier_points():
 @pytest.mark.parametrize(("beams", "scenario", "alone"),
                          [(32, "summer_clear", True), (32, "winter_snow", True), (16, "summer_clear", False)])
 def test_a_spinning_scan_of_32_beams_is_dense_enough_to_be_described_alone(beams, scenario, alone):
-    # merged, 32-beam scans in snow kept the flakes of earlier scans (docs/results.md)
+    # merged, 32-beam scans in snow kept the flakes of earlier scans (docs/results/trail.md)
     sim = pytest.importorskip("vbrl_ros.simulator")
     town = sim.generate_town(sim.TownConfig(blocks_x=2, blocks_y=2), seed=5)
     run = sim.simulate_run(town, sim.make_route(town, sim.RouteConfig(loops=1, spacing_m=1.0, max_scans=2)),

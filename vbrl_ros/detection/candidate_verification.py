@@ -86,7 +86,7 @@ NOT_REGISTERED = np.zeros((0, 3), np.float32)
 #: many neighbours, reaching up to WIDER_NEIGHBOUR_DISTANCE_M: where a partly blind sensor's passes
 #: share only side facades, the wider maps reach the structure along the street that fixes the
 #: position there. On the simulated low robot with 90 degrees hidden, four times the neighbours
-#: within 12 m published more closures than twice within 6 m (docs/results.md); on the shared
+#: within 12 m published more closures than twice within 6 m (docs/results/recordings.md); on the shared
 #: recordings neither changed anything.
 WIDER_RETRY_FITNESS = 0.7
 WIDER_RETRY_NEIGHBOURS = 4

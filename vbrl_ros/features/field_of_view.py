@@ -19,7 +19,7 @@ pitching, a hand-held one) is not cut by 6 degrees in one keyframe and not at al
 Left alone: level sensors (under :data:`MIN_TILT_DEG`, nothing to mirror) and those whose
 field of view reaches :data:`WIDE_TOP_DEG` or higher (hand-held dome units): they see the
 tops of nearly everything beyond a few metres either way, and on such a recording, held
-tilted by up to 20°, cutting them cost retrieval (docs/results.md).
+tilted by up to 20°, cutting them cost retrieval (docs/results/tilt_and_sway.md).
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ its place for one descriptor to pin it down. The keyframes of the last ``trail_m
 odometry are merged into the keyframe's own frame before it is described (odometry is good to
 centimetres over a few metres), so it is described from a denser cloud of the same place. Of
 1.5, 3 and 5 m, 3 m helped the hand-held recordings most (``vbrl eval --trail``,
-docs/results.md): a longer trail reaches where a revisit from another direction came from.
+docs/results/trail.md): a longer trail reaches where a revisit from another direction came from.
 
 Only the keyframe's own blind wedges count: merged-in keyframes would fill part of the wedge a
 mast hides, and the descriptor would then no longer hide its mirror image
@@ -44,7 +44,7 @@ MAX_TRAIL_KEYFRAMES = 40
 #: points of 32 x 1024 rays in the simulator, snow to clear) merged with a whole earlier scan
 #: gained little in clear weather and lost revisits in snow and fog, whose flakes from the
 #: earlier scan stand beside the keyframe's own and are no longer lone returns the clutter test
-#: drops (simulated 32-beam car in snow: Recall@1 .991 alone, .924 trailed; docs/results.md).
+#: drops (simulated 32-beam car in snow: Recall@1 .991 alone, .924 trailed; docs/results/trail.md).
 #: Filling up rather than merging whole scans keeps the descriptor from jumping at this count.
 TRAIL_POINTS = 25_000
 #: Within this horizontal range an earlier keyframe's point is kept only where another keyframe
@@ -180,7 +180,7 @@ def confirmed(points: np.ndarray, keyframe_of: np.ndarray) -> np.ndarray:
     Rain, snow and fog return from different places in every scan, structure from the same: an
     earlier scan's flake stands beside the keyframe's structure, where the clutter test no longer
     sees it alone, but nothing else confirms it (simulated 16-beam car in snow: Recall@1 .949
-    trailed, .978 confirmed; docs/results.md)."""
+    trailed, .978 confirmed; docs/results/trail.md)."""
     keep = np.ones(len(points), dtype=bool)
     within = np.einsum("ij,ij->i", points[:, :2], points[:, :2]) < CONFIRM_RANGE_M ** 2
     if not (within & (keyframe_of > 0)).any():

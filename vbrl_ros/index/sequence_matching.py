@@ -27,7 +27,7 @@ from numba import njit
 from vbrl_ros.index.keyframe_places import KeyframePlaces
 
 #: Keyframes per sequence, the current one included (1: off). Measured on the shared
-#: recordings and the simulated sensors (docs/results.md): 3 to 5 all help, 4 helped everywhere.
+#: recordings and the simulated sensors (docs/results/recordings.md): 3 to 5 all help, 4 helped everywhere.
 DEFAULT_LENGTH = 4
 #: Keyframes of slack per step: passes are keyframed at different spots and speeds.
 SLACK = 1

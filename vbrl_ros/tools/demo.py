@@ -31,7 +31,7 @@ from vbrl_ros.training.report import importance_report
 
 #: The training town driven in both seasons of the sessions; the sessions are another town.
 #: (The paper's own setting, the Cartesian grid on scenario targets, let the node find .65-.67
-#: of the winter revisits, this .87: docs/results.md.)
+#: of the winter revisits, this .87: docs/results/node.md.)
 TRAINING_TOWNS = tuple(SimulatedTown(1, 1.8, 32, scenario=scenario, run_seed=seed)
                        for scenario, seed in (("summer_clear", 11), ("winter_snow", 12)))
 SESSIONS = (("summer_clear", 21), ("winter_snow", 22))

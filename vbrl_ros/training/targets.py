@@ -4,7 +4,7 @@ The paper (docs/design.md §2.2): one column per *scenario* (the
 session/season/weather a scan was recorded in). On the simulator's long-term
 protocol that makes the sparsity norms pick the features that tell scenarios
 apart — exactly what changes between sessions — and full VBRL loses to its
-unregularised ablation (docs/results.md). Labelling *places* instead (keyframe positions binned
+unregularised ablation (docs/results/baselines.md). Labelling *places* instead (keyframe positions binned
 into cells) asks W for the features that tell places apart across
 scenarios, which is what recognition needs.
 """
