@@ -119,13 +119,12 @@ def measure(rates: tuple[float, ...], drive: Drive, out_dir: Path, *, node_param
             "node_cpu_percent": usage[0].cpu_percent, "peak_rss_mb": usage[0].peak_rss_mb,
             "rss_mb_first_last": [usage[0].first_rss_mb, usage[0].last_rss_mb],
         })
-    return {"drive": asdict(drive), "bag": str(bag), "rates": rows}
+    return {"drive": asdict(drive), "sensor": drive.sensor(), "bag": str(bag), "rates": rows}
 
 
 def format_table(results: dict) -> str:
     d = results["drive"]
-    sensor = Drive(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}).sensor()
-    head = (f"vbrl_node on a simulated drive ({sensor} at {d['rate_hz']:g} Hz, "
+    head = (f"vbrl_node on a simulated drive ({results['sensor']} at {d['rate_hz']:g} Hz, "
             f"{d['speed_mps']:g} m/s, keyframes every 1 m), replayed over DDS; latency from a cloud's "
             f"arrival until its closures are decided (stored: until it is described, searched and stored)")
     header = ("rate", "clouds sent/received", "lost", "keyframes processed/dropped", "unverified",

@@ -102,7 +102,8 @@ class Trail:
             return points
         known = pose is not None and bool(np.all(np.isfinite(pose)))
         # a forward-looking keyframe has its own trail, whatever its density
-        empty = empty_bins(np.asarray(points)[:, :2].astype(np.float32)) if known and self._forward.reach_m > 0.0 and len(points) else None
+        forward_trail_on = known and self._forward.reach_m > 0.0 and len(points) > 0
+        empty = empty_bins(np.asarray(points)[:, :2].astype(np.float32)) if forward_trail_on else None
         forward = empty is not None and not sees_around(empty)
         # a dense keyframe is described alone and not kept: a trail of them would hold ~1 MB each
         usable = known and (forward or len(points) < TRAIL_POINTS)
