@@ -64,39 +64,76 @@ def search_views(index: KeyframeIndex, views: np.ndarray, offsets: np.ndarray, t
     :meth:`~vbrl_ros.index.sequence_matching.SequenceHistory.rescore` by row) turns the
     pool's distances into the ones the result is ranked by and reports.
     """
+    views, offsets = checked_views(views, offsets)
+    wanted = top_k if len(views) == 1 and rescore is None else max(pool, top_k)
+    if len(views) == 1:  # the index's own yaws: no view to pick
+        base = index.search_with_yaw(views[0], wanted, allowed, exact=exact)
+        rows = base.indices
+        ranked = ranked_by(rows, base.distances, rescore)
+        order = np.lexsort((rows, ranked))[:top_k]
+        return ViewSearchResult(rows[order], ranked[order], base.shifts[order], base.yaws[order],
+                                np.zeros((len(order), 2)))
+    found = view_pool(index, views, wanted, allowed, exact=exact)
+    ranked = ranked_by(found.rows, found.distances, rescore)
+    order = np.lexsort((found.rows, ranked))[:top_k]
+    rows, distances, shifts, winner = (found.rows[order], found.distances[order], found.shifts[order],
+                                       found.winner[order])
+    return ViewSearchResult(rows, ranked[order], shifts, pool_yaws(index, views, rows, distances, shifts, winner),
+                            offsets[winner])
+
+
+def checked_views(views: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``views`` (V, d) and ``offsets`` (V, 2) as arrays, or ``ValueError`` when they do not pair up."""
     views = np.asarray(views)
     offsets = np.asarray(offsets, dtype=np.float64).reshape(-1, 2)
     if views.ndim != 2 or len(views) != len(offsets) or len(views) == 0:
         raise ValueError(f"{len(views)} views for {len(offsets)} offsets")
-    wanted = top_k if len(views) == 1 and rescore is None else max(pool, top_k)
+    return views, offsets
+
+
+@dataclass(frozen=True)
+class ViewPool:
+    """Keyframes of one index nearest a query described from several viewpoints, unranked."""
+
+    rows: np.ndarray  # int64, the index's rows
+    distances: np.ndarray  # float32, each the minimum over the views
+    shifts: np.ndarray  # int64, the sector shift of that minimum
+    winner: np.ndarray  # int64, the view it was found under
+
+
+def view_pool(index: KeyframeIndex, views: np.ndarray, wanted: int, allowed: Allowed = None, *,
+              exact: bool = False) -> ViewPool:
+    """The ``wanted`` keyframes nearest the first of ``views`` (V, d), each re-scored under every
+    view within :data:`SHIFT_RADIUS` sector shifts of its best."""
     base = index.search_with_yaw(views[0], wanted, allowed, exact=exact)
     rows, n = base.indices, len(base.indices)
-    if len(views) == 1 or n == 0:
-        ranked = _ranked(rows, base.distances, rescore)
-        order = np.lexsort((rows, ranked))[:top_k]
-        return ViewSearchResult(rows[order], ranked[order], base.shifts[order], base.yaws[order],
-                                np.zeros((len(order), 2)))
+    distances = base.distances.astype(np.float32)
+    shifts, winner = base.shifts.copy(), np.zeros(n, np.int64)
+    if n == 0:
+        return ViewPool(rows, distances, shifts, winner)
     sectors = index.sectors
     radius = min(SHIFT_RADIUS, (sectors - 1) // 2)
     around = (base.shifts[:, None] + np.arange(-radius, radius + 1)) % sectors
-    distances = base.distances.astype(np.float32)
-    shifts, winner = base.shifts.copy(), np.zeros(n, np.int64)
     for v in range(1, len(views)):
         at = index.distances_at_shifts(views[v], rows, around)
         k = np.argmin(at, axis=1)
         d = at[np.arange(n), k]
         better = d < distances
         distances[better], shifts[better], winner[better] = d[better], around[better, k[better]], v
-    ranked = _ranked(rows, distances, rescore)
-    order = np.lexsort((rows, ranked))[:top_k]
-    rows, distances, shifts, winner = rows[order], distances[order], shifts[order], winner[order]
+    return ViewPool(rows, distances, shifts, winner)
+
+
+def pool_yaws(index: KeyframeIndex, views: np.ndarray, rows: np.ndarray, distances: np.ndarray,
+              shifts: np.ndarray, winner: np.ndarray) -> np.ndarray:
+    """The yaw of each of ``rows`` from its own distances under the view that won it, not the
+    ranking's."""
     yaws = np.empty(len(rows))
-    for v in np.unique(winner):  # the yaw from the keyframe's own distances, not the ranking's
+    for v in np.unique(winner):
         at = winner == v
         yaws[at] = index.refined_yaws(views[v], rows[at], distances[at], shifts[at])
-    return ViewSearchResult(rows, ranked[order], shifts, yaws, offsets[winner])
+    return yaws
 
 
-def _ranked(rows: np.ndarray, distances: np.ndarray, rescore: Rescore | None) -> np.ndarray:
+def ranked_by(rows: np.ndarray, distances: np.ndarray, rescore: Rescore | None) -> np.ndarray:
     """float64 distances the pool is ranked by: its own, or ``rescore``'s."""
     return np.asarray(distances if rescore is None else rescore(rows, distances), np.float64)
