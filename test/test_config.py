@@ -40,6 +40,11 @@ def test_bad_grid_values_name_the_field(kwargs, name):
         ({"trail_m": float("nan")}, "features.trail_m"),
         ({"trail_m": 100.0}, "features.trail_m"),
         ({"trail_m": True}, "features.trail_m"),
+        ({"fill_blind_wedges": True}, "features.fill_blind_wedges"),  # nothing mirrored, no forward trail
+        ({"fill_blind_wedges": 1, "modalities": ("height",), "mirror_blind_wedges": True,
+          "forward_trail_m": 60.0}, "features.fill_blind_wedges"),
+        ({"fill_blind_wedges": True, "modalities": ("height",), "mirror_blind_wedges": True},
+         "features.fill_blind_wedges"),
     ],
 )
 def test_bad_feature_values_name_the_field(kwargs, name):
@@ -70,6 +75,14 @@ def test_a_trail_is_saved_only_when_set_so_older_models_keep_their_identity():
     trailed = FeatureConfig(trail_m=3.0)
     assert trailed.to_dict()["trail_m"] == 3.0
     assert FeatureConfig(**trailed.to_dict()) == trailed
+
+
+def test_filled_wedges_are_saved_only_when_on_so_older_models_keep_their_identity():
+    plain = FeatureConfig(modalities=("height",), mirror_blind_wedges=True, forward_trail_m=60.0)
+    filled = FeatureConfig(modalities=("height",), mirror_blind_wedges=True, forward_trail_m=60.0,
+                           fill_blind_wedges=True)
+    assert "fill_blind_wedges" not in plain.to_dict()
+    assert FeatureConfig(**filled.to_dict()) == filled
 
 
 def test_unknown_keys_are_refused():

@@ -192,6 +192,9 @@ class FeatureConfig:
     ``forward_trail_m`` describes a forward-looking keyframe with the earlier keyframes of the
     last ``forward_trail_m`` metres that looked at where it stands
     (:mod:`vbrl_ros.features.forward_trail`; 0 = alone).
+    ``fill_blind_wedges`` also describes a keyframe with a blind wedge all round where the
+    keyframes of its forward trail fill the wedge whole, compared only with keyframes described
+    so (:mod:`vbrl_ros.index.all_round`); it needs ``mirror_blind_wedges`` and ``forward_trail_m``.
     ``drop_weather_clutter`` takes lone points in the air near the sensor (returns from rain,
     snow or dust) out of the height map (:mod:`vbrl_ros.features.weather_clutter`); it
     changes the height-map modalities only.
@@ -215,6 +218,7 @@ class FeatureConfig:
     drop_weather_clutter: bool = False
     trail_m: float = 0.0
     forward_trail_m: float = 0.0
+    fill_blind_wedges: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "modalities", tuple(self.modalities))
@@ -282,6 +286,13 @@ class FeatureConfig:
             "features.forward_trail_m",
             f"must be a number of metres in [0, {MAX_FORWARD_TRAIL_M:g}], got {self.forward_trail_m!r}",
         )
+        _require(
+            isinstance(self.fill_blind_wedges, bool)
+            and (not self.fill_blind_wedges or (self.mirror_blind_wedges and self.forward_trail_m > 0)),
+            "features.fill_blind_wedges",
+            f"must be true or false, and true only with mirror_blind_wedges and a forward_trail_m, "
+            f"got {self.fill_blind_wedges!r}",
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """Every setting; the ones added after the paper's only when not at their defaults,
@@ -298,6 +309,8 @@ class FeatureConfig:
             del out["mirror_field_of_view"]
         if not self.drop_weather_clutter:
             del out["drop_weather_clutter"]
+        if not self.fill_blind_wedges:
+            del out["fill_blind_wedges"]
         if self.trail_m == 0.0:
             del out["trail_m"]
         if self.forward_trail_m == 0.0:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from vbrl_ros.features.blind_wedges import azimuth_bins, blind_bins
+from vbrl_ros.features.blind_wedges import BINS, azimuth_bins, blind_bins, empty_bins
 from vbrl_ros.features.trail import (
     CONFIRM_RANGE_M,
     MAX_TRAIL_KEYFRAMES,
@@ -236,3 +236,67 @@ def test_confirmed_keeps_everything_without_earlier_points_near():
     lone = confirmed(np.array([[1.0, 2.0, 0.5], [1.2, 2.1, 0.7], [5.0, 5.0, 1.0]]), np.array([0, 1, 1]))
     assert lone.tolist() == [True, True, False]  # beside the keyframe's own point / alone
     assert CONFIRM_RANGE_M > 6.0
+
+
+def street(rng: np.random.Generator) -> np.ndarray:
+    """(n, 3) world points: a 60 m street, walls 5 m either side (0–3 m high), ground between."""
+    wall_x = rng.uniform(-40.0, 20.0, 3000)
+    walls_ = np.column_stack([wall_x, rng.choice([-5.0, 5.0], 3000), rng.uniform(0.0, 3.0, 3000)])
+    ground = np.column_stack([rng.uniform(-40.0, 20.0, 3000), rng.uniform(-5.0, 5.0, 3000), np.full(3000, -0.8)])
+    return np.vstack([walls_, ground])
+
+
+def behind_hidden(points: np.ndarray) -> np.ndarray:
+    """``points`` without the 90° wedge behind the sensor that a mast hides."""
+    return points[np.abs(np.degrees(np.arctan2(points[:, 1], points[:, 0]))) < 135.0]
+
+
+def drive(trail: Trail, world: np.ndarray, xs: np.ndarray, blind: bool = True) -> list:
+    """(hidden cloud, all-round cloud or None) of each keyframe driven down the street at ``xs``."""
+    out = []
+    for x in xs:
+        scan = seen_from(world, pose_at(float(x)))
+        out.append(trail.clouds(behind_hidden(scan) if blind else scan, pose_at(float(x))))
+    return out
+
+
+def test_a_wedge_the_forward_trail_fills_whole_is_described_all_round_as_well():
+    world = street(np.random.default_rng(5))
+    xs = np.arange(-30.0, 0.5, 1.0)
+    filled = drive(Trail(3.0, 60.0, fill_blind_wedges=True), world, xs)
+    plain = drive(Trail(3.0, 60.0), world, xs)
+    hidden, all_round = filled[-1]
+    assert all_round is not None
+    wedge = np.abs(np.degrees(np.arange(BINS) * 2 * np.pi / BINS - np.pi) + 2.5) > 137.5  # the bins behind
+    assert empty_bins(hidden[:, :2])[wedge].all() and not empty_bins(all_round[:, :2])[wedge].any()
+    # what fills the wedge is the street behind, where odometry puts it
+    behind = all_round[np.abs(np.degrees(np.arctan2(all_round[:, 1], all_round[:, 0]))) > 150.0]
+    assert len(behind) > 100
+    gap, _ = cKDTree(world).query(in_world(behind, pose_at(0.0)))
+    assert gap.max() < 1e-3
+    # the described cloud is the one it always was; without the option nothing is described all round
+    assert all(np.array_equal(a[0], b[0]) for a, b in zip(filled, plain))
+    assert all(c is None for _, c in plain)
+    assert filled[0][1] is None  # the first keyframe has nothing to fill its wedge from
+
+
+def test_no_all_round_cloud_for_a_keyframe_that_sees_all_round_or_a_wedge_left_open():
+    world = street(np.random.default_rng(6))
+    xs = np.arange(-30.0, 0.5, 1.0)
+    assert all(c is None for _, c in drive(Trail(3.0, 60.0, fill_blind_wedges=True), world, xs, blind=False))
+    # standing still, as a session starts: the keyframes before saw what it sees, its wedge stays open
+    standing = drive(Trail(3.0, 60.0, fill_blind_wedges=True), world, np.full(5, -30.0))
+    assert all(c is None for _, c in standing)
+
+
+def test_points_above_the_keyframes_own_field_of_view_do_not_fill_it():
+    rng = np.random.default_rng(7)
+    world = street(rng)
+    tower = np.column_stack([np.full(400, -12.0), rng.uniform(-1.0, 1.0, 400), rng.uniform(0.0, 30.0, 400)])
+    xs = np.arange(-30.0, 0.5, 1.0)
+    hidden, all_round = drive(Trail(3.0, 60.0, fill_blind_wedges=True), world, xs)[-1]
+    _, with_tower = drive(Trail(3.0, 60.0, fill_blind_wedges=True), np.vstack([world, tower]), xs)[-1]
+    assert all_round is not None and with_tower is not None
+    top = np.arctan2(hidden[:, 2], np.hypot(hidden[:, 0], hidden[:, 1])).max()
+    elevation = np.arctan2(with_tower[:, 2], np.hypot(with_tower[:, 0], with_tower[:, 1]))
+    assert elevation.max() <= top + 1e-3

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vbrl_ros.features.blind_wedges import BINS, azimuth_bins, blind_runs, empty_bins, sees_around
+from vbrl_ros.features.field_of_view import field_top
 from vbrl_ros.features.forward_trail import ForwardTrail, within_reach
 
 #: At most this many earlier keyframes are kept, however short their spacing.
@@ -70,7 +71,8 @@ class Trail:
     trail. A keyframe without a usable pose, or from another session, starts the trail anew.
     """
 
-    def __init__(self, reach_m: float, forward_reach_m: float = 0.0, max_age: float = math.inf) -> None:
+    def __init__(self, reach_m: float, forward_reach_m: float = 0.0, max_age: float = math.inf,
+                 fill_blind_wedges: bool = False) -> None:
         for name, value in (("trail reach", reach_m), ("forward trail reach", forward_reach_m)):
             if not (np.isfinite(value) and value >= 0.0):
                 raise ValueError(f"{name} must be a finite number of metres >= 0, got {value!r}")
@@ -78,6 +80,7 @@ class Trail:
             raise ValueError(f"trail max_age must be >= 0, got {max_age!r}")
         self.reach_m = float(reach_m)
         self.max_age = float(max_age)
+        self.fill_blind_wedges = bool(fill_blind_wedges) and forward_reach_m > 0.0
         self._earlier: deque[_Earlier] = deque()
         self._forward = ForwardTrail(forward_reach_m, max_age)
         self._session: str | None = None
@@ -98,8 +101,15 @@ class Trail:
         """``points`` (N, >=3) merged with the trail in their own frame, (M, 3); ``points`` itself
         when there is nothing to merge. ``pose``: T_world_lidar, None when unknown. ``stamp``: when
         it was taken; keyframes ``max_age`` or more before it are not merged (NaN: no limit)."""
+        return self.clouds(points, pose, session, stamp)[0]
+
+    def clouds(self, points: np.ndarray, pose: np.ndarray | None, session: str = "",
+               stamp: float = math.nan) -> tuple[np.ndarray, np.ndarray | None]:
+        """(:meth:`cloud`, the cloud it is described by all round or None): with
+        ``fill_blind_wedges``, a keyframe with a blind wedge that the keyframes of its forward
+        trail fill whole (:func:`filling`) is also described all round (:mod:`vbrl_ros.index.all_round`)."""
         if self.reach_m == 0.0 and self._forward.reach_m == 0.0:
-            return points
+            return points, None
         known = pose is not None and bool(np.all(np.isfinite(pose)))
         # a forward-looking keyframe has its own trail, whatever its density
         forward_trail_on = known and self._forward.reach_m > 0.0 and len(points) > 0
@@ -111,23 +121,39 @@ class Trail:
             self.clear()
             self._session = session
             if not usable:
-                return points
+                return points, None
         pose = np.asarray(pose, np.float64)
         if self._last_position is not None:
             self._travelled += float(np.linalg.norm(pose[:3, 3] - self._last_position))
         self._last_position = pose[:3, 3].copy()
         self._forget_beyond_reach(pose, stamp)
         xyz = np.array(np.asarray(points)[:, :3], dtype=np.float32)  # a copy: the caller may reuse its buffer
+        all_round = None
         if forward:
             merged = self._forward_merged(xyz, pose, stamp)
-            self._forward.add(xyz, pose, self._travelled, stamp)
         else:
-            merged = self._merged(xyz, pose, empty)
+            empty = empty_bins(xyz[:, :2]) if empty is None else empty
+            parts, blind = self._near_parts(xyz, pose, empty)
+            merged = None if len(parts) == 1 else merged_confirmed(parts, blind | np.roll(blind, BINS // 2))
+            if self.fill_blind_wedges and blind.any():
+                all_round = self._all_round(parts, blind, pose, stamp)
+        if forward or self.fill_blind_wedges:
+            self._forward.add(xyz, pose, self._travelled, stamp)
         if len(xyz) < TRAIL_POINTS:
             self._earlier.append(_Earlier(xyz, pose, self._travelled, stamp))
         while len(self._earlier) > MAX_TRAIL_KEYFRAMES:
             self._earlier.popleft()
-        return points if merged is None else merged
+        return (points if merged is None else merged), all_round
+
+    def _all_round(self, parts: list[np.ndarray], blind: np.ndarray, pose: np.ndarray,
+                   stamp: float) -> np.ndarray | None:
+        """The keyframe (``parts[0]``) with its near trail and, in its ``blind`` bins, what its
+        forward trail saw there; None unless that leaves no blind wedge."""
+        filled = filling(self._forward.merged(parts[0], pose, self._travelled, stamp), blind, parts[0])
+        if not filled:
+            return None
+        cloud = merged_confirmed([*parts, *filled])
+        return None if blind_runs(empty_bins(cloud[:, :2])).any() else cloud
 
     def _forward_merged(self, xyz: np.ndarray, pose: np.ndarray, stamp: float) -> np.ndarray | None:
         parts = [xyz, *self._forward.merged(xyz, pose, self._travelled, stamp)]
@@ -139,12 +165,12 @@ class Trail:
         self._earlier = deque(e for e in self._earlier
                               if within_reach(e, self._travelled, pose, stamp, self.reach_m, self.max_age))
 
-    def _merged(self, xyz: np.ndarray, pose: np.ndarray, empty: np.ndarray | None) -> np.ndarray | None:
-        if self.reach_m == 0.0 or not self._earlier or not len(xyz):
-            return None
-        empty = empty_bins(xyz[:, :2]) if empty is None else empty
-        if not sees_around(empty):
-            return None
+    def _near_parts(self, xyz: np.ndarray, pose: np.ndarray, empty: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+        """([the keyframe's points, the trail's points of each earlier keyframe...], its blind
+        bins): the earlier keyframes nearest first, filling the cloud up to ``TRAIL_POINTS``."""
+        blind = blind_runs(empty)
+        if self.reach_m == 0.0 or not self._earlier or not len(xyz) or not sees_around(empty):
+            return [xyz], blind
         to_keyframe = np.linalg.inv(pose)
         parts, total = [xyz], len(xyz)
         for earlier in reversed(self._earlier):  # nearest first
@@ -157,8 +183,25 @@ class Trail:
             T = to_keyframe @ earlier.pose
             parts.append((points @ T[:3, :3].T + T[:3, 3]).astype(np.float32))
             total += len(points)
-        blind = blind_runs(empty)
-        return merged_confirmed(parts, blind | np.roll(blind, BINS // 2))
+        return parts, blind
+
+
+def filling(parts: list[np.ndarray], blind: np.ndarray, own: np.ndarray) -> list[np.ndarray]:
+    """Of earlier keyframes' points ``parts`` (the keyframe's frame), those in its ``blind``
+    azimuth bins and below the top of the field of view that saw its ``own`` points: what it
+    would have seen there (a point above its top beam would stand in the height map where no
+    keyframe of its own could put one)."""
+    top = field_top(own)
+    if not math.isfinite(top):
+        return []
+    top_tan = math.tan(top)
+    out = []
+    for points in parts:
+        horizontal = np.hypot(points[:, 0], points[:, 1])
+        keep = blind[azimuth_bins(points[:, :2])] & (points[:, 2] <= top_tan * horizontal)
+        if keep.any():
+            out.append(points[keep])
+    return out
 
 
 def merged_confirmed(parts: list[np.ndarray], hidden: np.ndarray | None = None) -> np.ndarray:
@@ -208,7 +251,16 @@ def with_trail(scans: Iterable[np.ndarray], poses: np.ndarray | None,
     """(scan, the cloud it is described by) of each of ``scans`` in order, one session whose
     ``poses`` (n, 4, 4) are T_world_lidar (None: no trail); ``stamps`` and ``max_age`` as
     :meth:`Trail.cloud`'s."""
-    trail = Trail(reach_m, forward_reach_m, max_age) if poses is not None else Trail(0.0)
+    for points, cloud, _ in trail_clouds(scans, poses, reach_m, forward_reach_m, stamps, max_age):
+        yield points, cloud
+
+
+def trail_clouds(scans: Iterable[np.ndarray], poses: np.ndarray | None,
+                 reach_m: float, forward_reach_m: float = 0.0, stamps: np.ndarray | None = None,
+                 max_age: float = math.inf, fill_blind_wedges: bool = False,
+                 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
+    """:func:`with_trail` with each scan's all-round cloud (:meth:`Trail.clouds`) third."""
+    trail = Trail(reach_m, forward_reach_m, max_age, fill_blind_wedges) if poses is not None else Trail(0.0)
     for k, points in enumerate(scans):
-        yield points, trail.cloud(points, None if poses is None else poses[k],
-                                  stamp=math.nan if stamps is None else float(stamps[k]))
+        yield points, *trail.clouds(points, None if poses is None else poses[k],
+                                    stamp=math.nan if stamps is None else float(stamps[k]))
