@@ -554,3 +554,29 @@ def test_with_odometry_a_session_is_matched_by_place_and_the_places_survive_a_re
     assert run(db, "other", with_position=True) == run(db, "other", with_position=False)
     db.save(tmp_path / "db.npz")
     assert run(KeyframeDatabase.load(tmp_path / "db.npz", SCORER, "model-A"), "s0", with_position=True) == by_place
+
+
+# -- all-round descriptors ------------------------------------------------------------
+
+
+def test_a_keyframe_described_all_round_is_found_all_round_and_kept_across_a_restart(tmp_path):
+    db, full = make_db(30)
+    rng = np.random.default_rng(9)
+    round_ = SCORER.compact(rng.normal(size=D).astype(np.float32))
+    kept = db.add(SCORER.compact(full[3]), stamp=30.0, session="s0", all_round=round_)
+    far = SCORER.compact(rng.normal(size=D).astype(np.float32) * 10.0)
+    assert kept not in [c.keyframe_id for c in db.query(far, top_k=3)]  # hidden, it is far
+    found = db.query_views(far[None], np.zeros((1, 2)), top_k=3, all_round_views=round_[None])
+    assert found[0].keyframe_id == kept and found[0].distance == 0.0
+    restored = KeyframeDatabase.load(db.save(tmp_path / "db.npz"), SCORER, "model-A")
+    assert restored.query_views(far[None], np.zeros((1, 2)), top_k=1,
+                                all_round_views=round_[None])[0].keyframe_id == kept
+    restored.clear()
+    assert len(restored.all_round) == 0
+
+
+def test_a_bad_all_round_descriptor_stores_nothing():
+    db, _ = make_db(3)
+    with pytest.raises(ValueError):
+        db.add(np.zeros(db.n_active), 3.0, "s0", all_round=np.zeros(db.n_active + 1))
+    assert len(db) == 3 and len(db.index) == 3 and len(db.all_round) == 0

@@ -232,3 +232,37 @@ def test_with_odometry_earlier_keyframes_are_matched_by_place():
         distances[with_odometry] = {c.match_id: c.distance for c in result.closures}
     assert 3 in distances[True] and 3 in distances[False]
     assert distances[True][3] != distances[False][3]
+
+
+def test_a_keyframe_whose_wedge_its_trail_fills_is_stored_all_round_as_the_evaluation_describes_it(tmp_path):
+    """A mast hides 90° behind the sensor; driving on, the keyframes behind saw into the wedge, and
+    the node describes a keyframe all round as well, exactly as ``vbrl eval`` does."""
+    import pytest
+
+    from vbrl_ros.datasets.kitti_style import write_kitti_style
+    from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
+    from vbrl_ros.evaluation.methods import describe_source
+
+    sim = pytest.importorskip("vbrl_ros.simulator")
+    town = sim.generate_town(sim.TownConfig(blocks_x=2, blocks_y=2), seed=3)
+    run = sim.simulate_run(town, sim.make_route(town, sim.RouteConfig(loops=1, spacing_m=2.0)),
+                           sim.LidarConfig(beams=16, columns=512, blocked_azimuth_deg=(135.0, -135.0)),
+                           "summer_clear", seed=1)
+    count, exclude = 24, 24
+    stamps = np.arange(count, dtype=float)
+    folder = write_kitti_style(tmp_path / "run", [run.scan(k).points for k in range(count)],
+                               run.poses[:count], stamps)
+    model = load_default_model()
+    assert model.config.features.fill_blind_wedges
+    source = describe_source(folder, model.config, ScanContextConfig(), workers=1, progress=False, exclude=exclude)
+    node = LoopClosureDetector(model, KeyframeDatabase(model.scorer(), model.identity()),
+                               DetectorSettings(verify=False, exclude_recent_s=float(exclude)))
+    poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
+    for k in range(count):
+        points = np.fromfile(folder / "velodyne" / f"{k:06d}.bin", np.float32).reshape(-1, 4)
+        node.process_keyframe(points, stamps[k], pose=np.vstack([poses[k], [0, 0, 0, 1]]))
+    assert source.has_all_round is not None and source.has_all_round.sum() >= count // 2
+    assert not source.has_all_round[0]  # nothing behind the first keyframe to fill its wedge
+    np.testing.assert_array_equal(node.database.all_round.rows, np.flatnonzero(source.has_all_round))
+    expected = model.scorer().compact(model.standardize(source.all_round[source.has_all_round, 0]))
+    np.testing.assert_allclose(node.database.all_round.index.descriptors(), expected, atol=1e-5)

@@ -330,3 +330,22 @@ def test_simulated_drift_reaches_odometry_and_leaves_the_ground_truth(trained, t
     assert vbrl(monkeypatch, "eval", summer, "--model", model, "--simulate-drift", "-1", "--quiet") == 2
     assert capsys.readouterr().err.strip() == ("vbrl eval: error: --simulate-drift must be in [0, 45] degrees "
                                                "per sqrt(100 m), got -1.0")
+
+
+def test_filling_blind_wedges_can_be_switched_for_a_like_for_like_comparison(trained, tmp_path, monkeypatch,
+                                                                            capsys):
+    (summer, _), model = trained
+    dumps = {}
+    for flag in ("--fill-blind-wedges", "--no-fill-blind-wedges"):  # the built-in model's and without
+        dumps[flag] = tmp_path / f"{flag}.matches.json"
+        assert vbrl(monkeypatch, "eval", summer, "--blocked-azimuth", "135", "-135", "--dump-matches",
+                    dumps[flag], "--exclude", "6", "--no-ablations", "--no-scan-context", "--quiet",
+                    "--workers", "1", flag) == 0
+    filled, hidden = ([row["distance"] for row in _read(dumps[f])] for f in dumps)
+    assert filled != pytest.approx(hidden)
+    # a model that neither mirrors wedges nor has a forward trail cannot fill them: one line
+    capsys.readouterr()
+    assert vbrl(monkeypatch, "eval", summer, "--model", model, "--fill-blind-wedges", "--quiet") == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("vbrl eval: error:") and "features.fill_blind_wedges" in error
+    assert len(error.splitlines()) == 1

@@ -32,13 +32,13 @@ from vbrl_ros.detection.database_file import MAX_KEYFRAME_ID, SavedDatabase, rea
 from vbrl_ros.detection.nearest_keyframe import PathNeighbours, rows_along_path
 from vbrl_ros.detection.odometry_gate import DrivenPath, path_lengths
 from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, KeyframeView, merged_cloud, neighbour_steps
+from vbrl_ros.index.all_round import AllRoundIndex, search_all_round
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.keyframe_places import BYTES_PER_KEYFRAME as PLACE_BYTES_PER_KEYFRAME
 from vbrl_ros.index.keyframe_places import KeyframePlaces
 from vbrl_ros.index.keyframe_store import grown
 from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.index.sequence_matching import PLACE_SLACK_M, SequenceHistory
-from vbrl_ros.index.translation_search import search_views
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
 _INITIAL_CAPACITY = 64
@@ -83,6 +83,7 @@ class KeyframeDatabase:
         self.model_id = str(model_id)
         self.index = KeyframeIndex(scorer.active_weights,
                                    replace(parameters or IndexParameters(), sectors=scorer.sectors))
+        self.all_round = AllRoundIndex.like(self.index)
         self._next_id = 0
         self._reset_storage()
 
@@ -236,11 +237,13 @@ class KeyframeDatabase:
         pose: np.ndarray | None = None,
         cloud: np.ndarray | None = None,
         frame: np.ndarray | None = None,
+        all_round: np.ndarray | None = None,
     ) -> int:
         """Append one keyframe; returns its new keyframe id (O(1) amortised + O(d) keys).
 
         ``frame``: 4x4 sensor -> grid frame of the keyframe (identity by default), the
-        frame ``cloud`` is given in."""
+        frame ``cloud`` is given in. ``all_round``: its compact all-round descriptor, when it
+        has one (:mod:`vbrl_ros.index.all_round`)."""
         stamp = float(stamp)
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite, got {stamp}")
@@ -258,7 +261,11 @@ class KeyframeDatabase:
             raise ValueError(f"cloud must have shape (M, 3), got {points.shape}")
         if self._next_id >= MAX_KEYFRAME_ID:
             raise ValueError(f"no keyframe id left: ids end at 2**53, {self._next_id} is next")
+        if all_round is not None:
+            all_round = self.index.check(all_round)
         self.index.add(descriptor_compact)  # validates the descriptor before storing anything
+        if all_round is not None:
+            self.all_round.add(self._size, all_round)
 
         n = self._size
         self._stamps = grown(self._stamps, n + 1)
@@ -294,6 +301,7 @@ class KeyframeDatabase:
     def clear(self) -> None:
         """Forget every keyframe and free the memory. Ids keep increasing (never reused)."""
         self.index = self.index.empty_like()
+        self.all_round = AllRoundIndex.like(self.index)
         self._reset_storage()
 
     def _session_id(self, session: str) -> int:
@@ -340,14 +348,19 @@ class KeyframeDatabase:
         exact: bool = False,
         sequence: SequenceHistory | None = None,
         position: np.ndarray | None = None,
+        all_round_views: np.ndarray | None = None,
     ) -> list[Candidate]:
         """:meth:`query` for a query described from several viewpoints ``offsets`` (V, 2), the
         first the sensor itself (translation search, :mod:`vbrl_ros.index.translation_search`).
 
         ``sequence``: the stream's earlier keyframes; candidates are then ranked (and their
         ``distance`` is) the sequence distance of :mod:`vbrl_ros.index.sequence_matching`, by place
-        for keyframes of ``session`` when ``position`` (3,), the query's by odometry, is given."""
+        for keyframes of ``session`` when ``position`` (3,), the query's by odometry, is given.
+        ``all_round_views``: the query described all round from the same viewpoints, when it has
+        been; it is also compared with the keyframes described so (:mod:`vbrl_ros.index.all_round`)."""
         views = np.stack([self.index.check(v) for v in np.asarray(views_compact)])
+        if all_round_views is not None:
+            all_round_views = np.stack([self.index.check(v) for v in np.asarray(all_round_views)])
         if top_k <= 0 or self._size == 0:
             if sequence is not None:  # this keyframe still takes its place in the sequence
                 sequence.rescore(np.zeros(0, np.int64), np.zeros(0))
@@ -363,7 +376,8 @@ class KeyframeDatabase:
         rescore = None if sequence is None else (
             lambda rows, distances: sequence.rescore(self._keyframe_ids[rows], distances, here=position,
                                                      places=places))
-        found = search_views(self.index, views, offsets, top_k, allowed, exact=exact, rescore=rescore)
+        found = search_all_round(self.index, views, offsets, top_k, allowed, all_round=self.all_round,
+                                 all_round_views=all_round_views, exact=exact, rescore=rescore)
         return [
             Candidate(
                 index=int(i),
@@ -392,7 +406,7 @@ class KeyframeDatabase:
             cloud_points=self._cloud_points[:p],
         )
         return write_database(path, SavedDatabase(self.model_id, self._sessions, self._next_id,
-                                                  columns, self.index), self.scorer)
+                                                  columns, self.index, self.all_round), self.scorer)
 
     @classmethod
     def load(cls, path: str | Path, scorer: WeightedL1Scorer, model_id: str) -> KeyframeDatabase:
@@ -403,7 +417,7 @@ class KeyframeDatabase:
         """
         saved = read_database(path, scorer, model_id)
         db, c = cls(scorer, model_id), saved.columns
-        db.index = saved.index
+        db.index, db.all_round = saved.index, saved.all_round
         db._size, db._n_points = len(c["stamps"]), len(c["cloud_points"])
         db._next_id = saved.next_keyframe_id
         db._sessions = list(saved.sessions)

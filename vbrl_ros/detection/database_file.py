@@ -7,7 +7,9 @@ scorer's active rows, because descriptors compacted or standardised for one
 model are meaningless under another. ``frames`` (n, 4, 4) is each keyframe's
 sensor -> grid-frame transform (its cloud is stored in the grid frame); version 2
 files, which have none, load with identity frames (their clouds are in the sensor
-frame, which is what an identity frame says). Version 1 files are refused.
+frame, which is what an identity frame says). Version 1 files are refused. The all-round
+descriptors of partly blind keyframes (:mod:`vbrl_ros.index.all_round`) are stored under
+``all_round_*``; a file without them has none.
 Members other than :data:`DATABASE_MEMBERS` are never read.
 """
 
@@ -19,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vbrl_ros.index.all_round import AllRoundIndex
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.state import STATE_MEMBERS
 from vbrl_ros.io.atomic import atomic_write
@@ -32,6 +35,7 @@ COLUMNS = (
     "stamps", "session_index", "keyframe_ids", "poses", "frames", "cloud_offsets", "cloud_points",
 )  # fmt: skip
 _INDEX_PREFIX = "index_"
+_ALL_ROUND_PREFIX = "all_round_"
 #: Every member a database file may hold; others are never read.
 DATABASE_MEMBERS = {
     "format": TEXT, "format_version": INTEGER, "model_id": TEXT, "dimension": INTEGER,
@@ -40,6 +44,8 @@ DATABASE_MEMBERS = {
     "poses": Member("f", 3), "frames": Member("f", 3), "cloud_offsets": Member("i", 1),
     "cloud_points": Member("f", 2),
     **{f"{_INDEX_PREFIX}{name}": member for name, member in STATE_MEMBERS.items()},
+    **{f"{_ALL_ROUND_PREFIX}{name}": member for name, member in STATE_MEMBERS.items()},
+    f"{_ALL_ROUND_PREFIX}rows": Member("i", 1),
 }
 #: Keyframe ids go out as float64 in the closure messages: exact up to 2**53.
 MAX_KEYFRAME_ID = 2**53
@@ -59,6 +65,7 @@ class SavedDatabase:
     next_keyframe_id: int
     columns: dict[str, np.ndarray]
     index: KeyframeIndex
+    all_round: AllRoundIndex
 
 
 def write_database(path: str | Path, saved: SavedDatabase, scorer: WeightedL1Scorer) -> Path:
@@ -74,6 +81,7 @@ def write_database(path: str | Path, saved: SavedDatabase, scorer: WeightedL1Sco
         next_keyframe_id=np.array(saved.next_keyframe_id, dtype=np.int64),
         **{name: saved.columns[name] for name in COLUMNS},
         **saved.index.state(_INDEX_PREFIX),
+        **saved.all_round.state(_ALL_ROUND_PREFIX),
     )
     return atomic_write(path, lambda handle: np.savez(handle, **payload))
 
@@ -161,7 +169,10 @@ def _checked(c: dict[str, np.ndarray], sessions: list[str], scorer: WeightedL1Sc
         raise ValueError(f"the index holds {len(index)} descriptors for {n} keyframes")
     if index.sectors != scorer.sectors or not np.array_equal(index.weights, scorer.active_weights):
         raise ValueError("the index was built with other weights than the scorer's")
-    return SavedDatabase(model_id, sessions, next_id, {name: c[name] for name in COLUMNS}, index)
+    all_round = AllRoundIndex.from_state(c, index, _ALL_ROUND_PREFIX)
+    if not np.array_equal(all_round.index.weights, index.weights):
+        raise ValueError("the all-round index was built with other weights than the scorer's")
+    return SavedDatabase(model_id, sessions, next_id, {name: c[name] for name in COLUMNS}, index, all_round)
 
 
 def _scalar_str(value: np.ndarray | None) -> str:

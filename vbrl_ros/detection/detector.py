@@ -65,8 +65,9 @@ class LoopClosureDetector:
         self.view_offsets = view_offsets(step)
         self.featurizer = model.featurizer()
         # the keyframes a keyframe is described with: as a submap, none a candidate's submap holds
-        self.trail = Trail(model.config.features.trail_m, model.config.features.forward_trail_m,
-                           max_age=submap_gap_s(settings))
+        features = model.config.features
+        self.trail = Trail(features.trail_m, features.forward_trail_m, max_age=submap_gap_s(settings),
+                           fill_blind_wedges=features.fill_blind_wedges)
         self.scorer = database.scorer
         self.sequence = SequenceHistory(settings.sequence_length)
         self.recent = RecentRegistrations()  # what the last keyframes registered to, to corroborate with
@@ -182,25 +183,27 @@ class LoopClosureDetector:
         """Describe the keyframe, find its candidates, store it (arguments as :meth:`process_keyframe`)."""
         cfg = self.settings
         t0 = time.perf_counter()
-        described = self.trail.cloud(points, pose, cfg.session, stamp=stamp)
+        described, all_round = self.trail.clouds(points, pose, cfg.session, stamp=stamp)
         frame = self.featurizer.frame(described, gravity, scan=points)
         views = self.scorer.compact(self.model.standardize(
             self.featurizer.describe_views(described, self.view_offsets, frame)))
+        all_round_views = None if all_round is None else self.scorer.compact(self.model.standardize(
+            self.featurizer.describe_views(all_round, self.view_offsets, frame)))
         t1 = time.perf_counter()
         # with the odometry gate and a pose, spares take the place of the candidates it rules out
         gated = cfg.odometry_drift > 0 and pose is not None
         found = self.database.query_views(
             views, self.view_offsets, top_k=cfg.top_k * (SPARE_FACTOR if gated else 1),
             session=cfg.session, stamp=stamp, exclude_recent_s=cfg.exclude_recent_s, sequence=self.sequence,
-            position=None if pose is None else np.asarray(pose, np.float64)[:3, 3],
+            position=None if pose is None else np.asarray(pose, np.float64)[:3, 3], all_round_views=all_round_views,
         )
         # sorted by distance: the first beyond the threshold ends the list
         candidates = [c for c in found if c.distance <= self.distance_threshold]
         t2 = time.perf_counter()
         cloud = verification_cloud(verified_by(points, described), frame.matrix,
                                    cfg.verification_voxel) if cfg.verify else None
-        keyframe_id = self.database.add(views[0], stamp, cfg.session, pose=pose, cloud=cloud,
-                                        frame=frame.matrix)
+        keyframe_id = self.database.add(views[0], stamp, cfg.session, pose=pose, cloud=cloud, frame=frame.matrix,
+                                        all_round=None if all_round_views is None else all_round_views[0])
         candidates = [self._gated(c, len(self.database) - 1) for c in candidates]
         candidates = candidates[:kept_with_spares([c.too_far_by_odometry for c in candidates], cfg.top_k)]
         t3 = time.perf_counter()

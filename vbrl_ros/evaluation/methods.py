@@ -45,12 +45,13 @@ from vbrl_ros.evaluation.retrieval import DistancesFn
 from vbrl_ros.evaluation.verified import TOP_K_RETRIEVED, KeyframeClouds
 from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.features.parallel import bounded_map, default_workers
-from vbrl_ros.features.trail import with_trail
+from vbrl_ros.features.trail import trail_clouds
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.keyframe_places import KeyframePlaces
 from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.index.sequence_matching import DEFAULT_LENGTH, PLACE_SLACK_M, SequenceHistory
-from vbrl_ros.index.translation_search import Rescore, search_views, view_offsets
+from vbrl_ros.index.all_round import AllRoundIndex, search_all_round
+from vbrl_ros.index.translation_search import Rescore, view_offsets
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.model.scoring import WeightedL1Scorer
 
@@ -72,6 +73,9 @@ class SourceDescriptors:
     poses: np.ndarray | None = None  # (n, 4, 4) T_world_lidar as the node's odometry reads it; None without
     truth: np.ndarray | None = None  # (n, 4, 4) the recorded poses, for the ground truth (None: ``poses``)
     stamps: np.ndarray | None = None  # (n,) seconds
+    # (n, V, d) raw descriptors all round of the keyframes with one (has_all_round), zeros elsewhere
+    all_round: np.ndarray | None = None
+    has_all_round: np.ndarray | None = None  # (n,) bool
 
     def __len__(self) -> int:
         return len(self.keyframe_index)
@@ -92,20 +96,23 @@ def _init_worker(config_dict: dict, sc_dict: dict, offsets: np.ndarray, voxel: f
                sc_trail)
 
 
-def _describe(scan: tuple[np.ndarray, np.ndarray | None]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
-                                                                   np.ndarray]:
-    """(views (V, d), Scan Context, verification cloud or None, levelled frame 4x4) of (points, the
-    cloud VBRL describes them by or None for the points themselves): the VBRL views and the
-    cloud as the node computes them; Scan Context reads the scan alone, as published, unless
-    told to read the same cloud as VBRL."""
+def _describe(scan: tuple[np.ndarray, np.ndarray | None, np.ndarray | None]) -> tuple[
+        np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
+    """(views (V, d), Scan Context, verification cloud or None, levelled frame 4x4, views all round
+    or None) of (points, the cloud VBRL describes them by or None for the points themselves, the
+    cloud it describes them by all round or None): the VBRL views and the cloud as the node
+    computes them; Scan Context reads the scan alone, as published, unless told to read the same
+    cloud as VBRL."""
     assert _worker is not None
     featurizer, sc_config, offsets, voxel, sc_trail = _worker
-    points, described = scan
+    points, described, all_round = scan
     described = points if described is None else described
     frame = featurizer.frame(described, scan=points)
     views = featurizer.describe_views(described, offsets, frame)
+    all_round_views = None if all_round is None else featurizer.describe_views(all_round, offsets, frame)
     cloud = None if voxel is None else verification_cloud(verified_by(points, described), frame.matrix, voxel)
-    return views, scan_context(described if sc_trail else points, sc_config), cloud, frame.matrix
+    return (views, scan_context(described if sc_trail else points, sc_config), cloud, frame.matrix,
+            all_round_views)
 
 
 def trail_horizon(source: ScanSource, indices: Sequence[int], exclude: int | None) -> dict[str, Any]:
@@ -170,12 +177,13 @@ def describe_source(
         if blocked_azimuth is not None:  # the mast turns with the sensor: hidden in its tilted frame
             scans = (points[outside_wedge(points, blocked_azimuth)] for points in scans)
         # None where the scan is described alone: the worker is not sent the same points twice
-        pairs = ((points, None if cloud is points else cloud) for points, cloud in
-                 with_trail(scans, poses, config.features.trail_m, config.features.forward_trail_m,
-                            **trail_horizon(source, indices, exclude)))
+        pairs = ((points, None if cloud is points else cloud, all_round) for points, cloud, all_round in
+                 trail_clouds(scans, poses, config.features.trail_m, config.features.forward_trail_m,
+                              **trail_horizon(source, indices, exclude),
+                              fill_blind_wedges=config.features.fill_blind_wedges))
         bar = tqdm(total=len(indices), desc=f"describing {source.name}", unit="scan",
                    disable=not progress, leave=False)
-        vbrl, sc, clouds, frames = [], [], [], []
+        vbrl, sc, clouds, frames, all_round = [], [], [], [], []
         with ExitStack() as stack:
             stack.callback(bar.close)
             if workers <= 1:
@@ -184,12 +192,14 @@ def describe_source(
             else:
                 pool = stack.enter_context(ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init))
                 rows = bounded_map(pool, _describe, pairs, 4 * workers)
-            for views_of_scan, context, cloud, frame in rows:
+            for views_of_scan, context, cloud, frame, round_views in rows:
                 vbrl.append(views_of_scan), sc.append(context), clouds.append(cloud), frames.append(frame)
+                all_round.append(round_views)
                 bar.update()
         positions = None if source.poses is None else source.poses[indices, :3, 3].copy()
         d = Featurizer(config).dimension
         views = np.stack(vbrl) if vbrl else np.zeros((0, len(offsets), d), np.float32)
+        has_all_round = np.array([v is not None for v in all_round], dtype=bool)
         return SourceDescriptors(
             name=source.name,
             vbrl=views[:, 0],
@@ -202,6 +212,9 @@ def describe_source(
             poses=poses,  # a selection (and its turn) of the source's poses: already a copy
             truth=None if truth is poses else truth,
             stamps=np.asarray(source.stamps, np.float64)[indices].copy(),
+            all_round=np.stack([np.zeros_like(v) if a is None else a for v, a in zip(vbrl, all_round)])
+            if has_all_round.any() else None,
+            has_all_round=has_all_round if has_all_round.any() else None,
         )
 
 
@@ -276,7 +289,10 @@ class VBRLMethod:
         Q = self.compact(queries.vbrl)
         T = Q if database is queries else self.compact(database.vbrl)
         index = self.new_index()
+        all_round = AllRoundIndex.like(index)
         raw_views, offsets = queries.views, queries.view_offsets
+        if raw_views is None:
+            raw_views, offsets = queries.vbrl[:, None], np.zeros((1, 2))
         # in P1 the poses stand in for the node's odometry: earlier keyframes are matched by place;
         # across sources (P2) the frames differ, as across the node's sessions
         positions = None if database is not queries or queries.poses is None else queries.poses[:, :3, 3]
@@ -291,16 +307,19 @@ class VBRLMethod:
                 if positions is not None:
                     for row in range(len(index), limit):
                         stream.places.add(row, positions[row])
+                if database.has_all_round is not None:
+                    for row in np.flatnonzero(database.has_all_round[len(index): limit]) + len(index):
+                        all_round.add(row, self.compact(database.all_round[row, :1])[0])
                 index.add_batch(T[len(index): limit])
             rescore = None if self.sequence_length == 1 else stream.rescorer(
                 None if positions is None else positions[i])
             allowed = None if len(index) == limit else np.arange(len(index)) < limit
-            if raw_views is None:
-                found = search_views(index, Q[i][None], np.zeros((1, 2)), self.top_k, allowed,
-                                     exact=self.exact, rescore=rescore)
-            else:  # as the node: the query from every viewpoint
-                found = search_views(index, self.compact(raw_views[i]), offsets, self.top_k,
-                                     allowed, exact=self.exact, rescore=rescore)
+            round_views = (self.compact(queries.all_round[i, :len(offsets)])
+                           if queries.has_all_round is not None and queries.has_all_round[i] else None)
+            # as the node: the query from every viewpoint
+            found = search_all_round(index, self.compact(raw_views[i]), offsets, self.top_k, allowed,
+                                     all_round=all_round, all_round_views=round_views, exact=self.exact,
+                                     rescore=rescore)
             out = np.full(len(candidates), np.inf)  # not retrieved: never a match
             out[found.indices] = found.distances
             return out

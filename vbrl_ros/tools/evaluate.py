@@ -79,6 +79,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="VBRL: describe each forward-looking keyframe with the keyframes of the "
                              "last M metres that looked at where it stands, as the node does with "
                              "odometry (default: the model's own setting; 0: alone)")
+    parser.add_argument("--fill-blind-wedges", action=argparse.BooleanOptionalAction, default=None,
+                        help="VBRL: also describe a keyframe with a blind wedge all round where its "
+                             "forward trail fills the wedge, compared only with keyframes described so, "
+                             "as the node does with odometry (default: the model's own setting)")
     parser.add_argument("--sequence-length", type=int, default=DETECTOR_DEFAULTS.sequence_length, metavar="N",
                         help="VBRL: score each candidate over this many keyframes, the query and the "
                              "ones before it, as the node's sequence_length (default "
@@ -234,7 +238,11 @@ def load(args: argparse.Namespace) -> Evaluation:
     if args.trail is not None:  # describing only: every variant keeps its weights
         config = replace(config, features=replace(config.features, trail_m=float(args.trail)))
     if args.forward_trail is not None:
-        config = replace(config, features=replace(config.features, forward_trail_m=float(args.forward_trail)))
+        config = replace(config, features=replace(config.features, forward_trail_m=float(args.forward_trail),
+                                                  fill_blind_wedges=config.features.fill_blind_wedges
+                                                  and args.forward_trail > 0))  # fills from the forward trail
+    if args.fill_blind_wedges is not None:
+        config = replace(config, features=replace(config.features, fill_blind_wedges=args.fill_blind_wedges))
     notes += in_sample_warnings(full, [args.query, args.against])
     notes += evaluate_mounting.notes(args)
     sc_config = evaluate_scan_context.config(args)

@@ -7,7 +7,8 @@ mirror image of any wedge the sensor did not see hidden, of a tilted sensor only
 also see turned half a turn, returns from rain or snow near the
 sensor left out, each keyframe described with the keyframes of the last 3 m merged in by
 odometry (its trail, when poses are known; of a forward-looking sensor, the keyframes of the last
-60 m that looked at where it stands), and queries also described from viewpoints
+60 m that looked at where it stands; of a partly blind one, also all round where those fill its
+wedge), and queries also described from viewpoints
 1.5 m around the sensor (translation search).
 """
 
@@ -21,7 +22,7 @@ RECOGNITION_GRID = dict(kind="polar", rings=20, sectors=30, max_range=40.0, z_ed
 RECOGNITION_FEATURES = FeatureConfig(modalities=("height", "spectrum"), min_points=1, normalise=True,
                                      mirror_blind_wedges=True, mirror_field_of_view=True,
                                      drop_weather_clutter=True, trail_m=3.0,
-                                     forward_trail_m=60.0)
+                                     forward_trail_m=60.0, fill_blind_wedges=True)
 RECOGNITION_TRANSLATION_SEARCH_M = 1.5
 
 
