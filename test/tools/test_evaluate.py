@@ -339,8 +339,8 @@ def test_filling_blind_wedges_can_be_switched_for_a_like_for_like_comparison(tra
     for flag in ("--fill-blind-wedges", "--no-fill-blind-wedges"):  # the built-in model's and without
         dumps[flag] = tmp_path / f"{flag}.matches.json"
         assert vbrl(monkeypatch, "eval", summer, "--blocked-azimuth", "135", "-135", "--dump-matches",
-                    dumps[flag], "--exclude", "6", "--no-ablations", "--no-scan-context", "--quiet",
-                    "--workers", "1", flag) == 0
+                    dumps[flag], "--plot", tmp_path / "pr.png", "--exclude", "6", "--no-ablations",
+                    "--no-scan-context", "--quiet", "--workers", "1", flag) == 0
     filled, hidden = ([row["distance"] for row in _read(dumps[f])] for f in dumps)
     assert filled != pytest.approx(hidden)
     # a model that neither mirrors wedges nor has a forward trail cannot fill them: one line
