@@ -67,7 +67,7 @@ class LoopClosureDetector:
         # the keyframes a keyframe is described with: as a submap, none a candidate's submap holds
         features = model.config.features
         self.trail = Trail(features.trail_m, features.forward_trail_m, max_age=submap_gap_s(settings),
-                           fill_blind_wedges=features.fill_blind_wedges)
+                           fill_blind_wedges=features.fill_blind_wedges and settings.fill_blind_wedges)
         self.scorer = database.scorer
         self.sequence = SequenceHistory(settings.sequence_length)
         self.recent = RecentRegistrations()  # what the last keyframes registered to, to corroborate with

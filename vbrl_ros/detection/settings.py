@@ -39,6 +39,8 @@ class DetectorSettings:
     verification_voxel: float = 1.0  # metres; stored clouds and registration use this voxel
     translation_search: float = -1.0  # metres between query viewpoints; 0: none; -1: the model's
     sequence_length: int = DEFAULT_LENGTH  # keyframes a candidate is scored over; 1: this one alone
+    # describe a partly blind keyframe all round as well where the model does (features.fill_blind_wedges)
+    fill_blind_wedges: bool = True
     submap_keyframes: int = 2  # neighbours merged into each verified cloud by odometry; 0: single scans
     # share of the path between two same-session keyframes odometry may drift; a candidate odometry
     # places farther than that (plus max_closure_distance and 5 m) is rejected unverified; 0: off
@@ -62,6 +64,7 @@ class DetectorSettings:
                                    "-1 (the model's), 0 (off) or a step in (0, 10] metres"),
             "sequence_length": (isinstance(self.sequence_length, int) and 1 <= self.sequence_length <= 20,
                                 "an integer in [1, 20]"),
+            "fill_blind_wedges": (isinstance(self.fill_blind_wedges, bool), "true or false"),
             "submap_keyframes": (isinstance(self.submap_keyframes, int) and 0 <= self.submap_keyframes <= 10,
                                  "an integer in [0, 10]"),
             "odometry_drift": (_at_least(self.odometry_drift, 0) and self.odometry_drift <= 1,

@@ -78,6 +78,11 @@ DESCRIPTIONS: dict[str, str] = {
                        "candidate's neighbours driven either way (with odometry, the stored keyframes where "
                        "the query was then). 1: this keyframe alone (keyframes that do not follow each other "
                        "along a path).",
+    "fill_blind_wedges": "where the model does (the built-in one: yes), describe a keyframe with a blind "
+                         "wedge (a mast, the robot's body) all round as well where the keyframes of the "
+                         "last 60 m saw into it, and compare it all round with the keyframes described so. "
+                         "false: only with the wedge and its mirror image hidden, which costs about half "
+                         "the time such a keyframe takes to describe and store.",
     "submap_keyframes": "neighbouring keyframes merged into each verified cloud by odometry poses (the "
                         "query's past, a stored keyframe's both sides): sparse scans then register as small "
                         "local maps. 0: single scans; without odometry, single scans too.",
