@@ -255,12 +255,16 @@ def test_a_keyframe_whose_wedge_its_trail_fills_is_stored_all_round_as_the_evalu
     model = load_default_model()
     assert model.config.features.fill_blind_wedges
     source = describe_source(folder, model.config, ScanContextConfig(), workers=1, progress=False, exclude=exclude)
-    node = LoopClosureDetector(model, KeyframeDatabase(model.scorer(), model.identity()),
-                               DetectorSettings(verify=False, exclude_recent_s=float(exclude)))
+    node, hidden_only = (LoopClosureDetector(model, KeyframeDatabase(model.scorer(), model.identity()),
+                                             DetectorSettings(verify=False, exclude_recent_s=float(exclude),
+                                                              fill_blind_wedges=fill)) for fill in (True, False))
     poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
     for k in range(count):
         points = np.fromfile(folder / "velodyne" / f"{k:06d}.bin", np.float32).reshape(-1, 4)
-        node.process_keyframe(points, stamps[k], pose=np.vstack([poses[k], [0, 0, 0, 1]]))
+        for detector_ in (node, hidden_only):
+            detector_.process_keyframe(points, stamps[k], pose=np.vstack([poses[k], [0, 0, 0, 1]]))
+    assert len(hidden_only.database.all_round) == 0  # the node's fill_blind_wedges off
+    np.testing.assert_array_equal(hidden_only.database.index.descriptors(), node.database.index.descriptors())
     assert source.has_all_round is not None and source.has_all_round.sum() >= count // 2
     assert not source.has_all_round[0]  # nothing behind the first keyframe to fill its wedge
     np.testing.assert_array_equal(node.database.all_round.rows, np.flatnonzero(source.has_all_round))
