@@ -568,9 +568,14 @@ def test_a_keyframe_described_all_round_is_found_all_round_and_kept_across_a_res
     assert kept not in [c.keyframe_id for c in db.query(far, top_k=3)]  # hidden, it is far
     found = db.query_views(far[None], np.zeros((1, 2)), top_k=3, all_round_views=round_[None])
     assert found[0].keyframe_id == kept and found[0].distance == 0.0
+    whole = db.add(SCORER.compact(full[4]), stamp=31.0, session="s0", sees_all_round=True)
     restored = KeyframeDatabase.load(db.save(tmp_path / "db.npz"), SCORER, "model-A")
     assert restored.query_views(far[None], np.zeros((1, 2)), top_k=1,
                                 all_round_views=round_[None])[0].keyframe_id == kept
+    np.testing.assert_array_equal(np.flatnonzero(restored.all_round.sees_all_round), [restored.index_of(whole)])
+    # an all-round query meets the keyframe described all round by itself, through its main descriptor
+    assert restored.query_views(far[None], np.zeros((1, 2)), top_k=1,
+                                all_round_views=SCORER.compact(full[4])[None])[0].keyframe_id == whole
     restored.clear()
     assert len(restored.all_round) == 0
 

@@ -24,6 +24,7 @@ def stored():
     index, all_round = new_index(), AllRoundIndex.like(new_index())
     for row in range(40):
         index.add(hidden[row])
+        all_round.note(sees_all_round=False)
         if row % 3 == 0:
             all_round.add(row, round_[row])
     return index, all_round, hidden, round_
@@ -93,3 +94,37 @@ def test_rows_beyond_the_keyframes_are_refused(stored):
     state["all_round_rows"] = state["all_round_rows"] + 100
     with pytest.raises(ValueError, match="all_round_rows"):
         AllRoundIndex.from_state(state, index)
+
+
+def test_keyframes_that_saw_all_round_by_themselves_meet_all_round_queries_both_ways():
+    """A car's keyframes see all round; a robot whose mast hides a wedge queries them all round,
+    and the car's query meets the robot's all-round descriptors."""
+    rng = np.random.default_rng(4)
+    car = rng.random((20, SECTORS * WIDTH), dtype=np.float32)
+    robot_hidden = rng.random((20, SECTORS * WIDTH), dtype=np.float32)
+    robot_round = rng.random((20, SECTORS * WIDTH), dtype=np.float32)
+    index, all_round = new_index(), AllRoundIndex.like(new_index())
+    for row in range(20):  # the car's keyframes: rows 0-19, all round by themselves
+        index.add(car[row])
+        all_round.note(sees_all_round=True)
+    for row in range(20):  # the robot's: rows 20-39, described all round by filling
+        index.add(robot_hidden[row])
+        all_round.note(sees_all_round=False)
+        all_round.add(20 + row, robot_round[row])
+    far = np.full((1, SECTORS * WIDTH), 5.0, np.float32)
+    # the robot's query, hidden far from everything, all round the car's keyframe 7
+    found = search_all_round(index, far, np.zeros((1, 2)), 3, all_round=all_round, all_round_views=car[7][None])
+    assert found.indices[0] == 7 and found.distances[0] == pytest.approx(0.0, abs=1e-5)
+    # the car's query is all round by itself and meets the robot's all-round descriptor of keyframe 25
+    found = search_all_round(index, robot_round[5][None], np.zeros((1, 2)), 3, all_round=all_round,
+                             sees_all_round=True)
+    assert found.indices[0] == 25 and found.distances[0] == pytest.approx(0.0, abs=1e-5)
+    # a query that is neither meets only the main descriptors
+    plain = search_all_round(index, robot_round[5][None], np.zeros((1, 2)), 3, all_round=all_round)
+    assert 25 not in plain.indices
+    # and an excluded car keyframe is not found all round either
+    allowed = np.ones(40, dtype=bool)
+    allowed[7] = False
+    found = search_all_round(index, far, np.zeros((1, 2)), 3, allowed, all_round=all_round,
+                             all_round_views=car[7][None])
+    assert 7 not in found.indices

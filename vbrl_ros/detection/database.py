@@ -238,12 +238,13 @@ class KeyframeDatabase:
         cloud: np.ndarray | None = None,
         frame: np.ndarray | None = None,
         all_round: np.ndarray | None = None,
+        sees_all_round: bool = False,
     ) -> int:
         """Append one keyframe; returns its new keyframe id (O(1) amortised + O(d) keys).
 
         ``frame``: 4x4 sensor -> grid frame of the keyframe (identity by default), the
         frame ``cloud`` is given in. ``all_round``: its compact all-round descriptor, when it
-        has one (:mod:`vbrl_ros.index.all_round`)."""
+        has one; ``sees_all_round``: its descriptor is all round by itself (:mod:`vbrl_ros.index.all_round`)."""
         stamp = float(stamp)
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite, got {stamp}")
@@ -264,6 +265,7 @@ class KeyframeDatabase:
         if all_round is not None:
             all_round = self.index.check(all_round)
         self.index.add(descriptor_compact)  # validates the descriptor before storing anything
+        self.all_round.note(sees_all_round)
         if all_round is not None:
             self.all_round.add(self._size, all_round)
 
@@ -349,6 +351,7 @@ class KeyframeDatabase:
         sequence: SequenceHistory | None = None,
         position: np.ndarray | None = None,
         all_round_views: np.ndarray | None = None,
+        sees_all_round: bool = False,
     ) -> list[Candidate]:
         """:meth:`query` for a query described from several viewpoints ``offsets`` (V, 2), the
         first the sensor itself (translation search, :mod:`vbrl_ros.index.translation_search`).
@@ -357,7 +360,8 @@ class KeyframeDatabase:
         ``distance`` is) the sequence distance of :mod:`vbrl_ros.index.sequence_matching`, by place
         for keyframes of ``session`` when ``position`` (3,), the query's by odometry, is given.
         ``all_round_views``: the query described all round from the same viewpoints, when it has
-        been; it is also compared with the keyframes described so (:mod:`vbrl_ros.index.all_round`)."""
+        been, or ``sees_all_round`` when ``views`` are all round by themselves; it is also compared
+        with the keyframes described so (:mod:`vbrl_ros.index.all_round`)."""
         views = np.stack([self.index.check(v) for v in np.asarray(views_compact)])
         if all_round_views is not None:
             all_round_views = np.stack([self.index.check(v) for v in np.asarray(all_round_views)])
@@ -377,7 +381,8 @@ class KeyframeDatabase:
             lambda rows, distances: sequence.rescore(self._keyframe_ids[rows], distances, here=position,
                                                      places=places))
         found = search_all_round(self.index, views, offsets, top_k, allowed, all_round=self.all_round,
-                                 all_round_views=all_round_views, exact=exact, rescore=rescore)
+                                 all_round_views=all_round_views, sees_all_round=sees_all_round, exact=exact,
+                                 rescore=rescore)
         return [
             Candidate(
                 index=int(i),

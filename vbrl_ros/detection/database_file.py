@@ -9,7 +9,8 @@ sensor -> grid-frame transform (its cloud is stored in the grid frame); version 
 files, which have none, load with identity frames (their clouds are in the sensor
 frame, which is what an identity frame says). Version 1 files are refused. The all-round
 descriptors of partly blind keyframes (:mod:`vbrl_ros.index.all_round`) are stored under
-``all_round_*``; a file without them has none.
+``all_round_*`` with ``all_round_sees``, the keyframes described all round by themselves; a file
+without them has none.
 Members other than :data:`DATABASE_MEMBERS` are never read.
 """
 
@@ -45,7 +46,7 @@ DATABASE_MEMBERS = {
     "cloud_points": Member("f", 2),
     **{f"{_INDEX_PREFIX}{name}": member for name, member in STATE_MEMBERS.items()},
     **{f"{_ALL_ROUND_PREFIX}{name}": member for name, member in STATE_MEMBERS.items()},
-    f"{_ALL_ROUND_PREFIX}rows": Member("i", 1),
+    f"{_ALL_ROUND_PREFIX}rows": Member("i", 1), f"{_ALL_ROUND_PREFIX}sees": Member("b", 1),
 }
 #: Keyframe ids go out as float64 in the closure messages: exact up to 2**53.
 MAX_KEYFRAME_ID = 2**53

@@ -35,7 +35,7 @@ from vbrl_ros.detection.odometry_gate import SPARE_FACTOR, kept_with_spares, odo
 from vbrl_ros.detection.registration import downsample_for_storage
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.detection.submaps import WIDER_NEIGHBOUR_DISTANCE_M
-from vbrl_ros.features.blind_wedges import looks_forward
+from vbrl_ros.features.blind_wedges import looks_forward, sees_all_round
 from vbrl_ros.features.trail import Trail
 from vbrl_ros.index.sequence_matching import SequenceHistory
 from vbrl_ros.index.translation_search import view_offsets
@@ -189,6 +189,7 @@ class LoopClosureDetector:
             self.featurizer.describe_views(described, self.view_offsets, frame)))
         all_round_views = None if all_round is None else self.scorer.compact(self.model.standardize(
             self.featurizer.describe_views(all_round, self.view_offsets, frame)))
+        whole = self.trail.fill_blind_wedges and all_round is None and sees_all_round(described)
         t1 = time.perf_counter()
         # with the odometry gate and a pose, spares take the place of the candidates it rules out
         gated = cfg.odometry_drift > 0 and pose is not None
@@ -196,6 +197,7 @@ class LoopClosureDetector:
             views, self.view_offsets, top_k=cfg.top_k * (SPARE_FACTOR if gated else 1),
             session=cfg.session, stamp=stamp, exclude_recent_s=cfg.exclude_recent_s, sequence=self.sequence,
             position=None if pose is None else np.asarray(pose, np.float64)[:3, 3], all_round_views=all_round_views,
+            sees_all_round=whole,
         )
         # sorted by distance: the first beyond the threshold ends the list
         candidates = [c for c in found if c.distance <= self.distance_threshold]
@@ -203,7 +205,8 @@ class LoopClosureDetector:
         cloud = verification_cloud(verified_by(points, described), frame.matrix,
                                    cfg.verification_voxel) if cfg.verify else None
         keyframe_id = self.database.add(views[0], stamp, cfg.session, pose=pose, cloud=cloud, frame=frame.matrix,
-                                        all_round=None if all_round_views is None else all_round_views[0])
+                                        all_round=None if all_round_views is None else all_round_views[0],
+                                        sees_all_round=whole)
         candidates = [self._gated(c, len(self.database) - 1) for c in candidates]
         candidates = candidates[:kept_with_spares([c.too_far_by_odometry for c in candidates], cfg.top_k)]
         t3 = time.perf_counter()

@@ -45,6 +45,7 @@ from vbrl_ros.evaluation.retrieval import DistancesFn
 from vbrl_ros.evaluation.verified import TOP_K_RETRIEVED, KeyframeClouds
 from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.features.parallel import bounded_map, default_workers
+from vbrl_ros.features.blind_wedges import sees_all_round
 from vbrl_ros.features.trail import trail_clouds
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.keyframe_places import KeyframePlaces
@@ -76,6 +77,7 @@ class SourceDescriptors:
     # (n, V, d) raw descriptors all round of the keyframes with one (has_all_round), zeros elsewhere
     all_round: np.ndarray | None = None
     has_all_round: np.ndarray | None = None  # (n,) bool
+    sees_all_round: np.ndarray | None = None  # (n,) bool: described all round by themselves (index.all_round)
 
     def __len__(self) -> int:
         return len(self.keyframe_index)
@@ -97,12 +99,12 @@ def _init_worker(config_dict: dict, sc_dict: dict, offsets: np.ndarray, voxel: f
 
 
 def _describe(scan: tuple[np.ndarray, np.ndarray | None, np.ndarray | None]) -> tuple[
-        np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
+        np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None, bool]:
     """(views (V, d), Scan Context, verification cloud or None, levelled frame 4x4, views all round
-    or None) of (points, the cloud VBRL describes them by or None for the points themselves, the
-    cloud it describes them by all round or None): the VBRL views and the cloud as the node
-    computes them; Scan Context reads the scan alone, as published, unless told to read the same
-    cloud as VBRL."""
+    or None, whether the views are all round by themselves) of (points, the cloud VBRL describes
+    them by or None for the points themselves, the cloud it describes them by all round or None):
+    the VBRL views and the cloud as the node computes them; Scan Context reads the scan alone, as
+    published, unless told to read the same cloud as VBRL."""
     assert _worker is not None
     featurizer, sc_config, offsets, voxel, sc_trail = _worker
     points, described, all_round = scan
@@ -111,8 +113,9 @@ def _describe(scan: tuple[np.ndarray, np.ndarray | None, np.ndarray | None]) -> 
     views = featurizer.describe_views(described, offsets, frame)
     all_round_views = None if all_round is None else featurizer.describe_views(all_round, offsets, frame)
     cloud = None if voxel is None else verification_cloud(verified_by(points, described), frame.matrix, voxel)
+    whole = featurizer.config.features.fill_blind_wedges and all_round is None and sees_all_round(described)
     return (views, scan_context(described if sc_trail else points, sc_config), cloud, frame.matrix,
-            all_round_views)
+            all_round_views, whole)
 
 
 def trail_horizon(source: ScanSource, indices: Sequence[int], exclude: int | None) -> dict[str, Any]:
@@ -183,7 +186,7 @@ def describe_source(
                               fill_blind_wedges=config.features.fill_blind_wedges))
         bar = tqdm(total=len(indices), desc=f"describing {source.name}", unit="scan",
                    disable=not progress, leave=False)
-        vbrl, sc, clouds, frames, all_round = [], [], [], [], []
+        vbrl, sc, clouds, frames, all_round, whole = [], [], [], [], [], []
         with ExitStack() as stack:
             stack.callback(bar.close)
             if workers <= 1:
@@ -192,9 +195,9 @@ def describe_source(
             else:
                 pool = stack.enter_context(ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init))
                 rows = bounded_map(pool, _describe, pairs, 4 * workers)
-            for views_of_scan, context, cloud, frame, round_views in rows:
+            for views_of_scan, context, cloud, frame, round_views, sees in rows:
                 vbrl.append(views_of_scan), sc.append(context), clouds.append(cloud), frames.append(frame)
-                all_round.append(round_views)
+                all_round.append(round_views), whole.append(sees)
                 bar.update()
         positions = None if source.poses is None else source.poses[indices, :3, 3].copy()
         d = Featurizer(config).dimension
@@ -215,6 +218,7 @@ def describe_source(
             all_round=np.stack([np.zeros_like(v) if a is None else a for v, a in zip(vbrl, all_round)])
             if has_all_round.any() else None,
             has_all_round=has_all_round if has_all_round.any() else None,
+            sees_all_round=np.array(whole, dtype=bool) if any(whole) else None,
         )
 
 
@@ -307,8 +311,9 @@ class VBRLMethod:
                 if positions is not None:
                     for row in range(len(index), limit):
                         stream.places.add(row, positions[row])
-                if database.has_all_round is not None:
-                    for row in np.flatnonzero(database.has_all_round[len(index): limit]) + len(index):
+                for row in range(len(index), limit):
+                    all_round.note(database.sees_all_round is not None and database.sees_all_round[row])
+                    if database.has_all_round is not None and database.has_all_round[row]:
                         all_round.add(row, self.compact(database.all_round[row, :1])[0])
                 index.add_batch(T[len(index): limit])
             rescore = None if self.sequence_length == 1 else stream.rescorer(
@@ -319,7 +324,8 @@ class VBRLMethod:
             # as the node: the query from every viewpoint
             found = search_all_round(index, self.compact(raw_views[i]), offsets, self.top_k, allowed,
                                      all_round=all_round, all_round_views=round_views, exact=self.exact,
-                                     rescore=rescore)
+                                     rescore=rescore, sees_all_round=queries.sees_all_round is not None
+                                     and bool(queries.sees_all_round[i]))
             out = np.full(len(candidates), np.inf)  # not retrieved: never a match
             out[found.indices] = found.distances
             return out

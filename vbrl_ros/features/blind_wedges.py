@@ -53,6 +53,13 @@ def looks_forward(points: np.ndarray) -> bool:
     return len(points) > 0 and not sees_around(empty_bins(np.asarray(points)[:, :2].astype(np.float32)))
 
 
+def sees_all_round(points: np.ndarray) -> bool:
+    """Whether a scan (N, >=2) is described all round as it is: it sees around and has no blind
+    wedge to hide."""
+    empty = empty_bins(np.asarray(points)[:, :2].astype(np.float32))
+    return len(points) > 0 and sees_around(empty) and not blind_runs(empty).any()
+
+
 def blind_bins(xy: np.ndarray, bins: np.ndarray | None = None) -> np.ndarray:
     """(BINS,) bool: the azimuth bins inside runs of at least ``MIN_BLIND_DEG`` with no point
     beyond ``MIN_RANGE_M``; all False when the scan saw less than ``MIN_SEEN_FRACTION``.

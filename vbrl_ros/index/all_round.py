@@ -13,6 +13,9 @@ Every keyframe keeps the descriptor it always had, in the main index; the all-ro
 an :class:`AllRoundIndex` of their own. A query with one is searched in both, and each keyframe
 found counts at the nearer of its two distances, the all-round one times
 :data:`ALL_ROUND_SCALE`: twice the circle compared, two different places also differ more.
+A keyframe that saw all round by itself (a car's, say, where a robot with a mast queries it) is
+described all round by its main descriptor, so all-round queries meet those as well, and such a
+keyframe's query meets the all-round descriptors.
 """
 
 from __future__ import annotations
@@ -38,6 +41,8 @@ class AllRoundIndex:
     def __init__(self, weights: np.ndarray, parameters: IndexParameters | None = None) -> None:
         self.index = KeyframeIndex(weights, parameters)
         self._rows = np.zeros(0, np.int64)
+        self._sees = np.zeros(0, bool)  # per main row: its main descriptor is all round
+        self._keyframes = 0
 
     @classmethod
     def like(cls, index: KeyframeIndex) -> AllRoundIndex:
@@ -52,12 +57,25 @@ class AllRoundIndex:
         """(n,) int64: the main index's row of each all-round descriptor, in insertion order."""
         return self._rows[: len(self.index)]
 
+    @property
+    def sees_all_round(self) -> np.ndarray:
+        """(keyframes,) bool: which main rows saw all round by themselves (:meth:`note`)."""
+        return self._sees[: self._keyframes]
+
+    def note(self, sees_all_round: bool) -> None:
+        """The main index's next keyframe: whether it saw all round by itself, so its main
+        descriptor is an all-round one. Called once per keyframe, before :meth:`add`."""
+        self._sees = grown(self._sees, self._keyframes + 1)
+        self._sees[self._keyframes] = bool(sees_all_round)
+        self._keyframes += 1
+
     def add(self, row: int, descriptor_compact: np.ndarray) -> None:
         """Keep the all-round descriptor of the main index's ``row``."""
         n = len(self.index)
         self.index.add(descriptor_compact)
         self._rows = grown(self._rows, n + 1)
         self._rows[n] = int(row)
+
 
     def allowed(self, allowed: Allowed) -> Allowed:
         """``allowed`` (over the main index's rows) for this index's entries."""
@@ -70,7 +88,8 @@ class AllRoundIndex:
 
     def state(self, prefix: str = "all_round_") -> dict[str, np.ndarray]:
         """Plain arrays to store in an ``.npz``; restore with :meth:`from_state`."""
-        return {**self.index.state(prefix), f"{prefix}rows": self.rows.copy()}
+        return {**self.index.state(prefix), f"{prefix}rows": self.rows.copy(),
+                f"{prefix}sees": self.sees_all_round.copy()}
 
     @classmethod
     def from_state(cls, arrays: Mapping[str, np.ndarray], like: KeyframeIndex,
@@ -78,6 +97,10 @@ class AllRoundIndex:
         """Rebuild from :meth:`state` arrays; an empty one like the main index ``like`` when there
         are none (a file written before keyframes were described all round)."""
         out = cls.like(like)
+        sees = np.asarray(arrays.get(f"{prefix}sees", np.zeros(len(like), bool)))
+        if sees.shape != (len(like),) or sees.dtype != bool:
+            raise ValueError(f"{prefix}sees: {sees.dtype} {sees.shape}, expected one bool per keyframe ({len(like)})")
+        out._sees, out._keyframes = sees.copy(), len(like)
         if f"{prefix}rows" not in arrays:
             return out
         out.index = KeyframeIndex.from_state(arrays, prefix)
@@ -91,40 +114,57 @@ class AllRoundIndex:
 
 def search_all_round(index: KeyframeIndex, views: np.ndarray, offsets: np.ndarray, top_k: int,
                      allowed: Allowed = None, *, all_round: AllRoundIndex | None = None,
-                     all_round_views: np.ndarray | None = None, pool: int = POOL, exact: bool = False,
-                     rescore: Rescore | None = None) -> ViewSearchResult:
+                     all_round_views: np.ndarray | None = None, sees_all_round: bool = False,
+                     pool: int = POOL, exact: bool = False, rescore: Rescore | None = None) -> ViewSearchResult:
     """:func:`~vbrl_ros.index.translation_search.search_views` of a query described from
-    ``offsets`` by ``views`` and, when it has them, all round by ``all_round_views`` (V, d):
-    those are searched among ``all_round``'s, and a keyframe found both ways counts at the nearer
-    distance (the all-round one times :data:`ALL_ROUND_SCALE`). A keyframe in one pool only counts
-    by that distance: outside the other's ``pool`` nearest, it is far that way."""
-    if all_round is None or all_round_views is None or len(all_round) == 0 or top_k <= 0:
+    ``offsets`` by ``views`` and, when it has them, all round by ``all_round_views`` (V, d); a
+    query that ``sees_all_round`` by itself is all round by its ``views``. All round, it is also
+    searched among ``all_round``'s descriptors and, when described so by filling, among the
+    keyframes that saw all round by themselves. A keyframe found several ways counts at the nearest
+    (an all-round comparison's times :data:`ALL_ROUND_SCALE`, unless both saw all round by
+    themselves: that is the main search); one in some pools only counts by those: outside the
+    others' ``pool`` nearest, it is far that way."""
+    full_views = all_round_views if all_round_views is not None else (views if sees_all_round else None)
+    searches = [(index, views, None, allowed, 1.0)]  # (index, query views, its rows' main rows, allowed, scale)
+    if all_round is not None and full_views is not None and top_k > 0:
+        if len(all_round):
+            searches.append((all_round.index, full_views, all_round.rows, all_round.allowed(allowed),
+                             ALL_ROUND_SCALE))
+        if all_round_views is not None and all_round.sees_all_round.any():
+            sees = all_round.sees_all_round
+            searches.append((index, full_views, None, sees if allowed is None else _and(allowed, sees),
+                             ALL_ROUND_SCALE))
+    if len(searches) == 1:  # nothing to compare all round: the main search alone, as it always was
         return search_views(index, views, offsets, top_k, allowed, pool=pool, exact=exact, rescore=rescore)
     views, offsets = checked_views(views, offsets)
-    all_round_views, _ = checked_views(all_round_views, offsets)
+    searches = [(kind, checked_views(kind_views, offsets)[0], *rest) for kind, kind_views, *rest in searches]
     wanted = max(pool, top_k)
-    kinds = (index, all_round.index)
-    pools = (view_pool(index, views, wanted, allowed, exact=exact),
-             view_pool(all_round.index, all_round_views, wanted, all_round.allowed(allowed), exact=exact))
-    found = (pools[0].rows, all_round.rows[pools[1].rows])
-    rows = np.union1d(*found)
+    pools = [view_pool(kind, kind_views, wanted, kind_allowed, exact=exact)
+             for kind, kind_views, _, kind_allowed, _ in searches]
+    found = [p.rows if to_main is None else to_main[p.rows] for p, (_, _, to_main, _, _) in zip(pools, searches)]
+    rows = np.unique(np.concatenate(found))
     distances = np.full(len(rows), np.inf)
-    kind = np.zeros(len(rows), np.int64)
-    entry = np.zeros(len(rows), np.int64)  # the row's position in its kind's pool
-    for k, scale in enumerate((1.0, ALL_ROUND_SCALE)):
+    source = np.zeros(len(rows), np.int64)  # which search found the row nearest
+    entry = np.zeros(len(rows), np.int64)  # its position in that search's pool
+    for k, (search, pool_k) in enumerate(zip(searches, pools)):
         at = np.searchsorted(rows, found[k])
-        scaled = pools[k].distances.astype(np.float64) * scale
+        scaled = pool_k.distances.astype(np.float64) * search[4]
         nearer = scaled < distances[at]
-        distances[at[nearer]], kind[at[nearer]], entry[at[nearer]] = scaled[nearer], k, np.flatnonzero(nearer)
+        distances[at[nearer]], source[at[nearer]], entry[at[nearer]] = scaled[nearer], k, np.flatnonzero(nearer)
     ranked = ranked_by(rows, distances, rescore)
     order = np.lexsort((rows, ranked))[:top_k]
-    rows, kind, entry = rows[order], kind[order], entry[order]
+    rows, source, entry = rows[order], source[order], entry[order]
     shifts, yaws, winner = np.empty(len(rows), np.int64), np.empty(len(rows)), np.empty(len(rows), np.int64)
-    for k, (kind_index, kind_views) in enumerate(zip(kinds, (views, all_round_views))):
-        at = kind == k
-        chosen = pools[k]
+    for k, ((kind, kind_views, *_), chosen) in enumerate(zip(searches, pools)):
+        at = source == k
         e = entry[at]
         shifts[at], winner[at] = chosen.shifts[e], chosen.winner[e]
-        yaws[at] = pool_yaws(kind_index, kind_views, chosen.rows[e], chosen.distances[e], chosen.shifts[e],
-                             chosen.winner[e])
+        yaws[at] = pool_yaws(kind, kind_views, chosen.rows[e], chosen.distances[e], chosen.shifts[e], chosen.winner[e])
     return ViewSearchResult(rows, ranked[order], shifts, yaws, offsets[winner])
+
+
+def _and(allowed: Allowed, sees: np.ndarray) -> Allowed:
+    """``allowed`` (a mask or a callable) and the keyframes that saw all round by themselves."""
+    if callable(allowed):
+        return lambda rows: np.asarray(allowed(rows)) & sees[rows]
+    return np.asarray(allowed) & sees
