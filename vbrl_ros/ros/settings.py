@@ -80,7 +80,8 @@ DESCRIPTIONS: dict[str, str] = {
                        "along a path).",
     "fill_blind_wedges": "where the model does (the built-in one: yes), describe a keyframe with a blind "
                          "wedge (a mast, the robot's body) all round as well where the keyframes of the "
-                         "last 60 m saw into it, and compare it all round with the keyframes described so. "
+                         "last 60 m saw into it, and compare it all round with the keyframes described so and "
+                         "those that saw all round by themselves. "
                          "false: only with the wedge and its mirror image hidden, which costs about half "
                          "the time such a keyframe takes to describe and store.",
     "submap_keyframes": "neighbouring keyframes merged into each verified cloud by odometry poses (the "
