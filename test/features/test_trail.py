@@ -300,3 +300,20 @@ def test_points_above_the_keyframes_own_field_of_view_do_not_fill_it():
     top = np.arctan2(hidden[:, 2], np.hypot(hidden[:, 0], hidden[:, 1])).max()
     elevation = np.arctan2(with_tower[:, 2], np.hypot(with_tower[:, 0], with_tower[:, 1]))
     assert elevation.max() <= top + 1e-3
+
+
+def test_a_dense_keyframe_is_described_alone_but_still_fills_its_wedge():
+    rng = np.random.default_rng(8)
+    world = street(rng)
+    dense = np.vstack([world, *(world + rng.normal(0.0, 0.05, world.shape) for _ in range(11))])  # ~28k seen
+    xs = np.arange(-30.0, 0.5, 1.0)
+    filled = drive(Trail(3.0, 60.0, fill_blind_wedges=True), dense, xs)
+    plain = drive(Trail(3.0, 60.0), dense, xs)
+    scan = behind_hidden(seen_from(dense, pose_at(0.0)))
+    assert len(scan) >= TRAIL_POINTS
+    hidden, all_round = filled[-1]
+    assert hidden is not None and np.array_equal(hidden, scan)  # described alone, as always
+    assert all(np.array_equal(a[0], b[0]) for a, b in zip(filled, plain))
+    assert all_round is not None and len(all_round) > len(scan)
+    wedge = np.abs(np.degrees(np.arange(BINS) * 2 * np.pi / BINS - np.pi) + 2.5) > 137.5
+    assert not empty_bins(all_round[:, :2])[wedge].any()

@@ -14,7 +14,8 @@ are dropped. A forward-looking scan's last few metres lie behind it, outside wha
 add what a revisit from ahead never saw; with ``forward_reach_m`` it is described with the
 earlier keyframes of a longer trail that looked at where it stands instead
 (:mod:`.forward_trail`). A dense scan (``TRAIL_POINTS``) that sees around is described alone:
-it holds its place already, and merged it lost revisits in snow and fog.
+it holds its place already, and merged it lost revisits in snow and fog; with
+``fill_blind_wedges`` it still fills a blind wedge from the forward trail for its all-round cloud.
 The trail fills a keyframe's cloud up to that count, so one just below it takes a few earlier
 points, and its descriptor does not jump between two scans on either side of the count.
 
@@ -117,11 +118,15 @@ class Trail:
         forward = empty is not None and not sees_around(empty)
         # a dense keyframe is described alone and not kept: a trail of them would hold ~1 MB each
         usable = known and (forward or len(points) < TRAIL_POINTS)
-        if not usable or session != self._session:
+        # but it may fill its blind wedge, and joins the forward trail thinned; the near trail starts anew
+        dense_fill = known and self.fill_blind_wedges and not forward and len(points) >= TRAIL_POINTS
+        if not (usable or dense_fill) or session != self._session:
             self.clear()
             self._session = session
-            if not usable:
+            if not (usable or dense_fill):
                 return points, None
+        if dense_fill:
+            self._earlier.clear()
         pose = np.asarray(pose, np.float64)
         if self._last_position is not None:
             self._travelled += float(np.linalg.norm(pose[:3, 3] - self._last_position))
