@@ -30,7 +30,10 @@ from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.index.translation_search import (POOL, Rescore, ViewSearchResult, checked_views, pool_yaws,
                                                ranked_by, search_views, view_pool)
 
-#: An all-round distance counts this many times over against a hidden one.
+#: An all-round distance counts this many times over against a hidden one. Counted equal, all-round
+#: lookalikes outranked the hidden matches of keyframes that could not fill their wedge (a standing
+#: start); weighed more, the all-round matches lost their lead (measured with the wedge hidden from
+#: the simulated low robot and two shared recordings).
 ALL_ROUND_SCALE = 1.0 / 0.85
 
 
@@ -75,7 +78,6 @@ class AllRoundIndex:
         self.index.add(descriptor_compact)
         self._rows = grown(self._rows, n + 1)
         self._rows[n] = int(row)
-
 
     def allowed(self, allowed: Allowed) -> Allowed:
         """``allowed`` (over the main index's rows) for this index's entries."""
