@@ -35,7 +35,7 @@ from vbrl_ros.detection.odometry_gate import SPARE_FACTOR, kept_with_spares, odo
 from vbrl_ros.detection.registration import downsample_for_storage
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.detection.submaps import WIDER_NEIGHBOUR_DISTANCE_M
-from vbrl_ros.features.blind_wedges import looks_forward, sees_all_round
+from vbrl_ros.features.blind_wedges import all_round_by_itself, looks_forward
 from vbrl_ros.features.trail import Trail
 from vbrl_ros.index.sequence_matching import SequenceHistory
 from vbrl_ros.index.translation_search import view_offsets
@@ -189,7 +189,7 @@ class LoopClosureDetector:
             self.featurizer.describe_views(described, self.view_offsets, frame)))
         all_round_views = None if all_round is None else self.scorer.compact(self.model.standardize(
             self.featurizer.describe_views(all_round, self.view_offsets, frame)))
-        whole = self.trail.fill_blind_wedges and all_round is None and sees_all_round(described)
+        whole = all_round_by_itself(described, all_round, self.trail.fill_blind_wedges)
         t1 = time.perf_counter()
         # with the odometry gate and a pose, spares take the place of the candidates it rules out
         gated = cfg.odometry_drift > 0 and pose is not None

@@ -45,7 +45,7 @@ from vbrl_ros.evaluation.retrieval import DistancesFn
 from vbrl_ros.evaluation.verified import TOP_K_RETRIEVED, KeyframeClouds
 from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.features.parallel import bounded_map, default_workers
-from vbrl_ros.features.blind_wedges import sees_all_round
+from vbrl_ros.features.blind_wedges import all_round_by_itself
 from vbrl_ros.features.trail import trail_clouds
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.keyframe_places import KeyframePlaces
@@ -113,7 +113,7 @@ def _describe(scan: tuple[np.ndarray, np.ndarray | None, np.ndarray | None]) -> 
     views = featurizer.describe_views(described, offsets, frame)
     all_round_views = None if all_round is None else featurizer.describe_views(all_round, offsets, frame)
     cloud = None if voxel is None else verification_cloud(verified_by(points, described), frame.matrix, voxel)
-    whole = featurizer.config.features.fill_blind_wedges and all_round is None and sees_all_round(described)
+    whole = all_round_by_itself(described, all_round, featurizer.config.features.fill_blind_wedges)
     return (views, scan_context(described if sc_trail else points, sc_config), cloud, frame.matrix,
             all_round_views, whole)
 
@@ -294,9 +294,8 @@ class VBRLMethod:
         T = Q if database is queries else self.compact(database.vbrl)
         index = self.new_index()
         all_round = AllRoundIndex.like(index)
-        raw_views, offsets = queries.views, queries.view_offsets
-        if raw_views is None:
-            raw_views, offsets = queries.vbrl[:, None], np.zeros((1, 2))
+        raw_views = queries.views
+        offsets = np.zeros((1, 2)) if raw_views is None else queries.view_offsets
         # in P1 the poses stand in for the node's odometry: earlier keyframes are matched by place;
         # across sources (P2) the frames differ, as across the node's sessions
         positions = None if database is not queries or queries.poses is None else queries.poses[:, :3, 3]
@@ -322,7 +321,8 @@ class VBRLMethod:
             round_views = (self.compact(queries.all_round[i, :len(offsets)])
                            if queries.has_all_round is not None and queries.has_all_round[i] else None)
             # as the node: the query from every viewpoint
-            found = search_all_round(index, self.compact(raw_views[i]), offsets, self.top_k, allowed,
+            views = Q[i][None] if raw_views is None else self.compact(raw_views[i])
+            found = search_all_round(index, views, offsets, self.top_k, allowed,
                                      all_round=all_round, all_round_views=round_views, exact=self.exact,
                                      rescore=rescore, sees_all_round=queries.sees_all_round is not None
                                      and bool(queries.sees_all_round[i]))

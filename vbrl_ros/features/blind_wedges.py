@@ -60,6 +60,14 @@ def sees_all_round(points: np.ndarray) -> bool:
     return len(points) > 0 and sees_around(empty) and not blind_runs(empty).any()
 
 
+def all_round_by_itself(described: np.ndarray, all_round: np.ndarray | None, fill_blind_wedges: bool) -> bool:
+    """Whether a keyframe's main descriptor, of the cloud it is ``described`` by, counts as an
+    all-round one (:mod:`vbrl_ros.index.all_round`): blind wedges are filled where they can be, it
+    has no all-round cloud of its own, and it :func:`sees_all_round`. The node and the evaluation
+    both decide it here."""
+    return fill_blind_wedges and all_round is None and sees_all_round(described)
+
+
 def blind_bins(xy: np.ndarray, bins: np.ndarray | None = None) -> np.ndarray:
     """(BINS,) bool: the azimuth bins inside runs of at least ``MIN_BLIND_DEG`` with no point
     beyond ``MIN_RANGE_M``; all False when the scan saw less than ``MIN_SEEN_FRACTION``.
