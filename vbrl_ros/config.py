@@ -193,7 +193,7 @@ class FeatureConfig:
     last ``forward_trail_m`` metres that looked at where it stands
     (:mod:`vbrl_ros.features.forward_trail`; 0 = alone).
     ``fill_blind_wedges`` also describes a keyframe with a blind wedge all round where the
-    keyframes of its forward trail fill the wedge whole, compared only with keyframes described
+    keyframes of its forward trail saw into the wedge, compared only with keyframes described
     so (:mod:`vbrl_ros.index.all_round`); it needs ``mirror_blind_wedges`` and ``forward_trail_m``.
     ``drop_weather_clutter`` takes lone points in the air near the sensor (returns from rain,
     snow or dust) out of the height map (:mod:`vbrl_ros.features.weather_clutter`); it

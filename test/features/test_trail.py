@@ -289,6 +289,22 @@ def test_no_all_round_cloud_for_a_keyframe_that_sees_all_round_or_a_wedge_left_o
     assert all(c is None for _, c in standing)
 
 
+def test_a_wedge_the_trail_fills_in_part_is_described_all_round_with_the_rest_left_open():
+    # no ground, and beside the street behind the sensor an open lot on its right: nothing there
+    # for any keyframe to see, so half the wedge stays empty whatever the trail holds
+    world = street(np.random.default_rng(9))
+    world = world[(world[:, 2] > -0.5) & ~((world[:, 1] < 0.0) & (world[:, 0] < -3.0))]
+    xs = np.arange(-30.0, 0.5, 1.0)
+    hidden, all_round = drive(Trail(3.0, 60.0, fill_blind_wedges=True), world, xs)[-1]
+    assert all_round is not None
+    azimuth = np.degrees(np.arange(BINS) * 2 * np.pi / BINS - np.pi) + 2.5  # bin centres
+    left_half, right_half = (azimuth > 137.5) & (azimuth < 172.5), (azimuth < -137.5) & (azimuth > -172.5)
+    assert empty_bins(hidden[:, :2])[left_half].all()
+    assert not empty_bins(all_round[:, :2])[left_half].any()  # the wall behind on the left, filled
+    assert empty_bins(all_round[:, :2])[right_half].all()  # the open lot: nothing to fill it with
+    assert blind_bins(all_round[:, :2])[right_half].all()  # a blind run is left: the featurizer hides it
+
+
 def test_points_above_the_keyframes_own_field_of_view_do_not_fill_it():
     rng = np.random.default_rng(7)
     world = street(rng)

@@ -108,7 +108,7 @@ class Trail:
                stamp: float = math.nan) -> tuple[np.ndarray, np.ndarray | None]:
         """(:meth:`cloud`, the cloud it is described by all round or None): with
         ``fill_blind_wedges``, a keyframe with a blind wedge that the keyframes of its forward
-        trail fill whole (:func:`filling`) is also described all round (:mod:`vbrl_ros.index.all_round`)."""
+        trail saw into (:func:`filling`) is also described all round (:mod:`vbrl_ros.index.all_round`)."""
         if self.reach_m == 0.0 and self._forward.reach_m == 0.0:
             return points, None
         known = pose is not None and bool(np.all(np.isfinite(pose)))
@@ -153,12 +153,10 @@ class Trail:
     def _all_round(self, parts: list[np.ndarray], blind: np.ndarray, pose: np.ndarray,
                    stamp: float) -> np.ndarray | None:
         """The keyframe (``parts[0]``) with its near trail and, in its ``blind`` bins, what its
-        forward trail saw there; None unless that leaves no blind wedge."""
+        forward trail saw there; None when it saw nothing there. A run still empty (an open lot,
+        a street with no end in range) is hidden with its mirror image when described, as any is."""
         filled = filling(self._forward.merged(parts[0], pose, self._travelled, stamp), blind, parts[0])
-        if not filled:
-            return None
-        cloud = merged_confirmed([*parts, *filled])
-        return None if blind_runs(empty_bins(cloud[:, :2])).any() else cloud
+        return merged_confirmed([*parts, *filled]) if filled else None
 
     def _forward_merged(self, xyz: np.ndarray, pose: np.ndarray, stamp: float) -> np.ndarray | None:
         parts = [xyz, *self._forward.merged(xyz, pose, self._travelled, stamp)]

@@ -3,7 +3,7 @@
 A mast hiding a wedge behind the sensor makes a keyframe hide that wedge and its mirror image
 (:mod:`vbrl_ros.features.blind_wedges`), half the circle for a 90° wedge, so that two passes
 either way compare the same directions. But the keyframes behind it looked forward into what is
-now behind it: where they fill the wedge whole, the keyframe is also described all round
+now behind it: where they saw into the wedge, the keyframe is also described all round
 (:meth:`~vbrl_ros.features.trail.Trail.clouds`). An all-round descriptor is compared only with
 another: one keyframe described all round and another with half the circle hidden describe
 different things (filling wedges in place of hiding them lost a courtyard whose first keyframes,
