@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -335,14 +336,20 @@ def test_simulated_drift_reaches_odometry_and_leaves_the_ground_truth(trained, t
 def test_filling_blind_wedges_can_be_switched_for_a_like_for_like_comparison(trained, tmp_path, monkeypatch,
                                                                             capsys):
     (summer, _), model = trained
-    dumps = {}
+    dumps, printed = {}, {}
     for flag in ("--fill-blind-wedges", "--no-fill-blind-wedges"):  # the built-in model's and without
         dumps[flag] = tmp_path / f"{flag}.matches.json"
+        capsys.readouterr()
         assert vbrl(monkeypatch, "eval", summer, "--blocked-azimuth", "135", "-135", "--dump-matches",
                     dumps[flag], "--plot", tmp_path / "pr.png", "--exclude", "6", "--no-ablations",
                     "--no-scan-context", "--quiet", "--workers", "1", flag) == 0
+        printed[flag] = [line for line in capsys.readouterr().out.splitlines() if line.startswith("all round, ")]
     filled, hidden = ([row["distance"] for row in _read(dumps[f])] for f in dumps)
     assert filled != pytest.approx(hidden)
+    # the report says how many keyframes were compared all round: here some, and none without
+    assert len(printed["--fill-blind-wedges"]) == 1 and not printed["--no-fill-blind-wedges"]
+    count, total = (int(n) for n in re.search(r"(\d+) of (\d+) keyframes", printed["--fill-blind-wedges"][0]).groups())
+    assert 0 < count < total
     # a model that neither mirrors wedges nor has a forward trail cannot fill them: one line
     capsys.readouterr()
     assert vbrl(monkeypatch, "eval", summer, "--model", model, "--fill-blind-wedges", "--quiet") == 2

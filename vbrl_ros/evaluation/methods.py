@@ -82,6 +82,16 @@ class SourceDescriptors:
     def __len__(self) -> int:
         return len(self.keyframe_index)
 
+    def all_round_summary(self) -> str | None:
+        """How many keyframes are compared all round (:mod:`vbrl_ros.index.all_round`), by filling
+        their blind wedge and by themselves; None when none is."""
+        filled = 0 if self.has_all_round is None else int(self.has_all_round.sum())
+        itself = 0 if self.sees_all_round is None else int(self.sees_all_round.sum())
+        if not filled and not itself:
+            return None
+        return (f"{self.name}: {filled} of {len(self)} keyframes also described all round where their trail "
+                f"saw into a blind wedge, {itself} all round by themselves")
+
     @property
     def recorded_poses(self) -> np.ndarray | None:
         """The poses as recorded, the ground truth, whatever odometry reads."""

@@ -81,7 +81,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "odometry (default: the model's own setting; 0: alone)")
     parser.add_argument("--fill-blind-wedges", action=argparse.BooleanOptionalAction, default=None,
                         help="VBRL: also describe a keyframe with a blind wedge all round where its "
-                             "forward trail fills the wedge, compared only with keyframes described so, "
+                             "forward trail saw into the wedge, compared only with keyframes described so, "
                              "as the node does with odometry (default: the model's own setting)")
     parser.add_argument("--sequence-length", type=int, default=DETECTOR_DEFAULTS.sequence_length, metavar="N",
                         help="VBRL: score each candidate over this many keyframes, the query and the "
@@ -352,6 +352,9 @@ def report(args: argparse.Namespace, evaluation: Evaluation,
         print(f"note: {note}")
     title = evaluation.title(args.exclude)
     print(f"{title}: {len(queries)} query keyframes, {len(database)} database keyframes")
+    for source in (queries,) if database is queries else (queries, database):
+        if (summary := source.all_round_summary()) is not None:
+            print(f"all round, {summary}")
     print(format_table(metrics, evaluation.radii))
     for radius, recalls in (by_heading or {}).items():
         if recalls is not None:
