@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from vbrl_ros.features.blind_wedges import BINS, azimuth_bins, blind_bins, empty_bins
+from vbrl_ros.features.blind_wedges import BINS, azimuth_bins, blind_bins, empty_bins, sees_all_round
 from vbrl_ros.features.trail import (
     CONFIRM_RANGE_M,
     MAX_TRAIL_KEYFRAMES,
@@ -256,7 +256,7 @@ def drive(trail: Trail, world: np.ndarray, xs: np.ndarray, blind: bool = True) -
     out = []
     for x in xs:
         scan = seen_from(world, pose_at(float(x)))
-        out.append(trail.clouds(behind_hidden(scan) if blind else scan, pose_at(float(x))))
+        out.append(trail.clouds(behind_hidden(scan) if blind else scan, pose_at(float(x)))[:2])
     return out
 
 
@@ -333,3 +333,21 @@ def test_a_dense_keyframe_is_described_alone_but_still_fills_its_wedge():
     assert all_round is not None and len(all_round) > len(scan)
     wedge = np.abs(np.degrees(np.arange(BINS) * 2 * np.pi / BINS - np.pi) + 2.5) > 137.5
     assert not empty_bins(all_round[:, :2])[wedge].any()
+
+
+def test_whether_a_described_cloud_sees_all_round_is_told_as_counting_its_bins_would():
+    rng = np.random.default_rng(10)
+    world = street(rng)
+    dense = np.vstack([world, *(world + rng.normal(0.0, 0.05, world.shape) for _ in range(11))])
+    cone = lambda points: points[np.abs(np.degrees(np.arctan2(points[:, 1], points[:, 0]))) < 35.0]  # noqa: E731
+    told = []
+    for scene, view in ((world, behind_hidden), (world, lambda p: p), (dense, lambda p: p), (dense, behind_hidden),
+                        (world, cone)):
+        trail = Trail(3.0, 60.0, fill_blind_wedges=True)
+        for x in np.arange(-30.0, 0.5, 2.0):
+            described, _, sees = trail.clouds(view(seen_from(scene, pose_at(float(x)))), pose_at(float(x)))
+            assert sees is None or sees == sees_all_round(described)
+            told.append(sees)
+    # the trail knows it for every keyframe that sees around, either way; not for a forward-looking one
+    assert told.count(True) >= 30 and told.count(False) >= 30 and 0 < told.count(None) <= 16
+    assert Trail(3.0, 60.0, fill_blind_wedges=True).clouds(world, None).sees_all_round is None  # no pose

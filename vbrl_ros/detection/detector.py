@@ -183,13 +183,13 @@ class LoopClosureDetector:
         """Describe the keyframe, find its candidates, store it (arguments as :meth:`process_keyframe`)."""
         cfg = self.settings
         t0 = time.perf_counter()
-        described, all_round = self.trail.clouds(points, pose, cfg.session, stamp=stamp)
+        described, all_round, sees = self.trail.clouds(points, pose, cfg.session, stamp=stamp)
         frame = self.featurizer.frame(described, gravity, scan=points)
         views = self.scorer.compact(self.model.standardize(
             self.featurizer.describe_views(described, self.view_offsets, frame)))
         all_round_views = None if all_round is None else self.scorer.compact(self.model.standardize(
             self.featurizer.describe_views(all_round, self.view_offsets, frame)))
-        whole = all_round_by_itself(described, all_round, self.trail.fill_blind_wedges)
+        whole = all_round_by_itself(described, all_round, self.trail.fill_blind_wedges, sees)
         t1 = time.perf_counter()
         # with the odometry gate and a pose, spares take the place of the candidates it rules out
         gated = cfg.odometry_drift > 0 and pose is not None

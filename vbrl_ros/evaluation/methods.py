@@ -108,22 +108,23 @@ def _init_worker(config_dict: dict, sc_dict: dict, offsets: np.ndarray, voxel: f
                sc_trail)
 
 
-def _describe(scan: tuple[np.ndarray, np.ndarray | None, np.ndarray | None]) -> tuple[
+def _describe(scan: tuple[np.ndarray, np.ndarray | None, np.ndarray | None, bool | None]) -> tuple[
         np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None, bool]:
     """(views (V, d), Scan Context, verification cloud or None, levelled frame 4x4, views all round
     or None, whether the views are all round by themselves) of (points, the cloud VBRL describes
-    them by or None for the points themselves, the cloud it describes them by all round or None):
+    them by or None for the points themselves, the cloud it describes them by all round or None,
+    whether the first sees all round or None when not known: :meth:`~vbrl_ros.features.trail.Trail.clouds`):
     the VBRL views and the cloud as the node computes them; Scan Context reads the scan alone, as
     published, unless told to read the same cloud as VBRL."""
     assert _worker is not None
     featurizer, sc_config, offsets, voxel, sc_trail = _worker
-    points, described, all_round = scan
+    points, described, all_round, sees = scan
     described = points if described is None else described
     frame = featurizer.frame(described, scan=points)
     views = featurizer.describe_views(described, offsets, frame)
     all_round_views = None if all_round is None else featurizer.describe_views(all_round, offsets, frame)
     cloud = None if voxel is None else verification_cloud(verified_by(points, described), frame.matrix, voxel)
-    whole = all_round_by_itself(described, all_round, featurizer.config.features.fill_blind_wedges)
+    whole = all_round_by_itself(described, all_round, featurizer.config.features.fill_blind_wedges, sees)
     return (views, scan_context(described if sc_trail else points, sc_config), cloud, frame.matrix,
             all_round_views, whole)
 
@@ -190,7 +191,7 @@ def describe_source(
         if blocked_azimuth is not None:  # the mast turns with the sensor: hidden in its tilted frame
             scans = (points[outside_wedge(points, blocked_azimuth)] for points in scans)
         # None where the scan is described alone: the worker is not sent the same points twice
-        pairs = ((points, None if cloud is points else cloud, all_round) for points, cloud, all_round in
+        pairs = ((points, None if cloud is points else cloud, all_round, sees) for points, cloud, all_round, sees in
                  trail_clouds(scans, poses, config.features.trail_m, config.features.forward_trail_m,
                               **trail_horizon(source, indices, exclude),
                               fill_blind_wedges=config.features.fill_blind_wedges))

@@ -60,12 +60,14 @@ def sees_all_round(points: np.ndarray) -> bool:
     return len(points) > 0 and sees_around(empty) and not blind_runs(empty).any()
 
 
-def all_round_by_itself(described: np.ndarray, all_round: np.ndarray | None, fill_blind_wedges: bool) -> bool:
+def all_round_by_itself(described: np.ndarray, all_round: np.ndarray | None, fill_blind_wedges: bool,
+                        sees: bool | None = None) -> bool:
     """Whether a keyframe's main descriptor, of the cloud it is ``described`` by, counts as an
     all-round one (:mod:`vbrl_ros.index.all_round`): blind wedges are filled where they can be, it
-    has no all-round cloud of its own, and it :func:`sees_all_round`. The node and the evaluation
-    both decide it here."""
-    return fill_blind_wedges and all_round is None and sees_all_round(described)
+    has no all-round cloud of its own, and it :func:`sees_all_round` (``sees``, when the caller
+    knows it already: counting the bins of a dense cloud again takes milliseconds). The node and
+    the evaluation both decide it here."""
+    return fill_blind_wedges and all_round is None and (sees_all_round(described) if sees is None else sees)
 
 
 def blind_bins(xy: np.ndarray, bins: np.ndarray | None = None) -> np.ndarray:

@@ -32,6 +32,7 @@ import math
 from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -54,6 +55,16 @@ TRAIL_POINTS = 25_000
 CONFIRM_RANGE_M = 12.0
 CONFIRM_VOXEL_M = 0.5
 _Z_CELLS = 128  # heights beyond +-64 voxels share the top and bottom ones
+
+
+class TrailClouds(NamedTuple):
+    """What :meth:`Trail.clouds` returns for a keyframe."""
+
+    described: np.ndarray  # the cloud it is described by
+    all_round: np.ndarray | None  # the cloud it is also described by all round, or None
+    # whether ``described`` sees all round by itself (blind_wedges.sees_all_round), where the trail
+    # knows it from the keyframe's own points; None: not known here
+    sees_all_round: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -105,12 +116,13 @@ class Trail:
         return self.clouds(points, pose, session, stamp)[0]
 
     def clouds(self, points: np.ndarray, pose: np.ndarray | None, session: str = "",
-               stamp: float = math.nan) -> tuple[np.ndarray, np.ndarray | None]:
-        """(:meth:`cloud`, the cloud it is described by all round or None): with
-        ``fill_blind_wedges``, a keyframe with a blind wedge that the keyframes of its forward
-        trail saw into (:func:`filling`) is also described all round (:mod:`vbrl_ros.index.all_round`)."""
+               stamp: float = math.nan) -> TrailClouds:
+        """(:meth:`cloud`, the cloud it is described by all round or None, whether the first sees all
+        round by itself or None): with ``fill_blind_wedges``, a keyframe with a blind wedge that the
+        keyframes of its forward trail saw into (:func:`filling`) is also described all round
+        (:mod:`vbrl_ros.index.all_round`)."""
         if self.reach_m == 0.0 and self._forward.reach_m == 0.0:
-            return points, None
+            return TrailClouds(points, None)
         known = pose is not None and bool(np.all(np.isfinite(pose)))
         # a forward-looking keyframe has its own trail, whatever its density
         forward_trail_on = known and self._forward.reach_m > 0.0 and len(points) > 0
@@ -124,7 +136,7 @@ class Trail:
             self.clear()
             self._session = session
             if not (usable or dense_fill):
-                return points, None
+                return TrailClouds(points, None)
         if dense_fill:
             self._earlier.clear()
         pose = np.asarray(pose, np.float64)
@@ -133,7 +145,7 @@ class Trail:
         self._last_position = pose[:3, 3].copy()
         self._forget_beyond_reach(pose, stamp)
         xyz = np.array(np.asarray(points)[:, :3], dtype=np.float32)  # a copy: the caller may reuse its buffer
-        all_round = None
+        all_round, whole = None, None
         if forward:
             merged = self._forward_merged(xyz, pose, stamp)
         else:
@@ -142,13 +154,15 @@ class Trail:
             merged = None if len(parts) == 1 else merged_confirmed(parts, blind | np.roll(blind, BINS // 2))
             if self.fill_blind_wedges and blind.any():
                 all_round = self._all_round(parts, blind, pose, stamp)
+            # merging keeps every own point and adds where no blind bin is: no bin empties, none fills one
+            whole = sees_around(empty) and not blind.any()
         if forward or self.fill_blind_wedges:
             self._forward.add(xyz, pose, self._travelled, stamp)
         if len(xyz) < TRAIL_POINTS:
             self._earlier.append(_Earlier(xyz, pose, self._travelled, stamp))
         while len(self._earlier) > MAX_TRAIL_KEYFRAMES:
             self._earlier.popleft()
-        return (points if merged is None else merged), all_round
+        return TrailClouds(points if merged is None else merged, all_round, whole)
 
     def _all_round(self, parts: list[np.ndarray], blind: np.ndarray, pose: np.ndarray,
                    stamp: float) -> np.ndarray | None:
@@ -254,15 +268,16 @@ def with_trail(scans: Iterable[np.ndarray], poses: np.ndarray | None,
     """(scan, the cloud it is described by) of each of ``scans`` in order, one session whose
     ``poses`` (n, 4, 4) are T_world_lidar (None: no trail); ``stamps`` and ``max_age`` as
     :meth:`Trail.cloud`'s."""
-    for points, cloud, _ in trail_clouds(scans, poses, reach_m, forward_reach_m, stamps, max_age):
+    for points, cloud, *_ in trail_clouds(scans, poses, reach_m, forward_reach_m, stamps, max_age):
         yield points, cloud
 
 
 def trail_clouds(scans: Iterable[np.ndarray], poses: np.ndarray | None,
                  reach_m: float, forward_reach_m: float = 0.0, stamps: np.ndarray | None = None,
                  max_age: float = math.inf, fill_blind_wedges: bool = False,
-                 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
-    """:func:`with_trail` with each scan's all-round cloud (:meth:`Trail.clouds`) third."""
+                 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None, bool | None]]:
+    """:func:`with_trail` with the rest of each scan's :meth:`Trail.clouds` (its all-round cloud and
+    whether it sees all round) after it."""
     trail = Trail(reach_m, forward_reach_m, max_age, fill_blind_wedges) if poses is not None else Trail(0.0)
     for k, points in enumerate(scans):
         yield points, *trail.clouds(points, None if poses is None else poses[k],
