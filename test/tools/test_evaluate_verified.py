@@ -142,3 +142,16 @@ def test_a_wider_verify_top_k_retrieves_the_spares_the_odometry_gate_draws_on(ve
     results = evaluate.retrieve(args, evaluation, next(m for m in evaluation.methods if m.name == FULL_NAME))
     spares = top_k * SPARE_FACTOR
     assert results.k >= spares and (results.indices[:, spares - 1] >= 0).any()  # kept, and filled by the model
+
+
+def test_the_revisits_the_node_missed_are_counted_by_why_and_add_up_to_what_recall_leaves(verified):
+    report, _, _, text = verified
+    assert "revisits not published there, by why" in text
+    for method in ("VBRL", "Scan Context"):
+        for fitness in ("0.1", "0.2"):
+            for radius in ("3", "5"):
+                missed = report["verified"]["missed_revisits"][method][fitness][radius]
+                point = report["verified"]["at_node_settings"][method][fitness][radius]
+                revisits = report["metrics"][method][radius]["num_revisits"]
+                assert all(count >= 0 for count in missed.values())
+                assert sum(missed.values()) == round(revisits * (1.0 - point["recall"])), (method, fitness, radius)

@@ -111,6 +111,7 @@ class VerifiedOutput:
     best_nearest: np.ndarray  # (n, 1) the keyframe the best verified closure is published to (-1: none)
     swept: dict[float, RetrievalMetrics]
     points: dict[float, dict[float, OperatingPoint]]
+    published: dict[float, np.ndarray]  # by min_fitness: (n, 1) the keyframe each query's closure went to (-1: none)
 
 
 def verified_output(inputs: VerificationInputs, results: RetrievalResults, rule: DetectorSettings, score: Score, *,
@@ -131,7 +132,7 @@ def verified_output(inputs: VerificationInputs, results: RetrievalResults, rule:
     limits = results.database_limit
     best_nearest = nearest_published(best[0], candidates, verified, inputs.database_track, limits)
     swept = score(RetrievalResults(best_nearest, best[1], limits))
-    points = {}
+    points, published = {}, {}
     corroboration = None if inputs.poses is None else Corroboration(
         *inputs.poses, rule.corroborated_fitness, None if inputs.odometry is None else inputs.odometry.paths,
         rule.odometry_drift)
@@ -141,7 +142,8 @@ def verified_output(inputs: VerificationInputs, results: RetrievalResults, rule:
         accepted = int(np.isfinite(decision).sum())
         points[fitness] = {r: operating_point(m, accepted)
                            for r, m in score(RetrievalResults(decided, decision, limits)).items()}
-    return VerifiedOutput(candidates, verified, best, best_nearest, swept, points)
+        published[fitness] = decided
+    return VerifiedOutput(candidates, verified, best, best_nearest, swept, points, published)
 
 
 def nearest_published(indices: np.ndarray, candidates: Candidates, verified: VerifiedCandidates,

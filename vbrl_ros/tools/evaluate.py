@@ -164,6 +164,13 @@ class Evaluation:
     trail_m: float = 0.0  # metres of keyframes merged into each one before VBRL describes it
     width: int = TOP_K_RETRIEVED  # candidates retrieved per query: enough for --verify-top-k's spares
 
+    def ground_truth(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The queries' and the stored keyframes' true positions, in the stored keyframes' frame."""
+        queries, database = self.queries.positions, self.database.positions
+        if queries is None or database is None:
+            return None
+        return (queries if self.alignment is None else apply_transform(queries, self.alignment)), database
+
     def title(self, exclude: int) -> str:
         if self.protocol == "P1":
             return f"P1 {self.queries.name} (exclude {exclude})"
@@ -181,7 +188,8 @@ def run(args: argparse.Namespace) -> int:
     verified = None
     if args.verify:
         verified = verify_outputs(args, evaluation.queries, evaluation.database,
-                                  lambda results: score(args, evaluation, results), metrics, retrieved)
+                                  lambda results: score(args, evaluation, results), metrics, retrieved,
+                                  truth=evaluation.ground_truth())
     indices = {name: results.indices for name, (_, results) in retrieved.items()}
     exclude = args.exclude if evaluation.protocol == "P1" else None
     by_heading = {r: recalls_by_heading(indices, evaluation.queries.recorded_poses, evaluation.database.recorded_poses,

@@ -17,6 +17,7 @@ import numpy as np
 from vbrl_ros.detection.settings import DetectorSettings, SettingsError
 from vbrl_ros.evaluation.methods import ScanContextMethod, SourceDescriptors
 from vbrl_ros.evaluation.metrics import RetrievalMetrics
+from vbrl_ros.evaluation.missed import MISSED_REASONS, missed_revisits
 from vbrl_ros.evaluation.retrieval import RetrievalResults
 from vbrl_ros.evaluation.verified import Candidates, OperatingPoint, VerifiedCandidates
 from vbrl_ros.evaluation.verified_output import Score, VerificationInputs, VerifiedOutput, verified_output
@@ -65,6 +66,8 @@ class VerifiedOutputs:
     thresholds: dict[str, float] = field(default_factory=dict)
     best: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
     checked: dict[str, tuple[Candidates, VerifiedCandidates]] = field(default_factory=dict)
+    # per method, min_fitness and radius: the revisits it did not publish, by cause (evaluation.missed)
+    missed: dict[str, dict[float, dict[float, dict[str, int]]]] = field(default_factory=dict)
 
     def summary(self, metrics: dict[str, dict[float, RetrievalMetrics]]) -> dict[str, Any]:
         return {
@@ -78,6 +81,9 @@ class VerifiedOutputs:
             "at_node_settings": {name: {f"{f:g}": {f"{r:g}": p.summary() for r, p in by_r.items()}
                                         for f, by_r in by_fitness.items()}
                                  for name, by_fitness in self.points.items()},
+            "missed_revisits": {name: {f"{f:g}": {f"{r:g}": counts for r, counts in by_r.items()}
+                                       for f, by_r in by_fitness.items()}
+                                for name, by_fitness in self.missed.items()},
         }
 
 
@@ -105,10 +111,12 @@ def settings(args: argparse.Namespace, min_fitness: float) -> DetectorSettings:
 
 def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, database: SourceDescriptors,
                    score: Score, metrics: dict[str, dict[float, RetrievalMetrics]],
-                   retrieved: dict[str, tuple[Any, RetrievalResults]]) -> VerifiedOutputs:
+                   retrieved: dict[str, tuple[Any, RetrievalResults]],
+                   truth: tuple[np.ndarray, np.ndarray] | None = None) -> VerifiedOutputs:
     """Verify the full model's and Scan Context's candidates; adds a ``"<method>, verified"``
     row (swept over fitness) to ``metrics`` for each. ``database`` is ``queries`` for P1;
-    ``score``: the protocol's metrics at every radius."""
+    ``score``: the protocol's metrics at every radius; ``truth``: the queries' and the stored
+    keyframes' true positions, in the stored keyframes' frame, to tell why revisits were missed."""
     rule = settings(args, args.min_fitness[0])
     outputs = VerifiedOutputs(rule, tuple(sorted(set(args.min_fitness))))
     inputs = VerificationInputs.of(queries, database, rule)  # merged once, verified for every method
@@ -125,6 +133,11 @@ def verify_outputs(args: argparse.Namespace, queries: SourceDescriptors, databas
         outputs.best[name] = best_entries(output)
         outputs.points[name] = output.points
         outputs.thresholds[name] = threshold
+        if truth is not None:
+            outputs.missed[name] = {
+                fitness: {r: missed_revisits(*truth, results.database_limit, output.candidates, output.verified,
+                                             output.published[fitness], r, fitness) for r in by_radius}
+                for fitness, by_radius in output.points.items()}
     return outputs
 
 
@@ -157,6 +170,17 @@ def format_points(outputs: VerifiedOutputs, radii: list[float]) -> str:
                 p = by_radius[r]
                 lines.append(f"  {name:<24s} {min_fitness:>11g} {p.accepted:>8d} {cell(p.precision, 9)} "
                              f"{cell(p.recall)} {cell(p.f1)}")
+    if outputs.missed:
+        lines.append("revisits not published there, by why (evaluation/missed.py)")
+        for r in radii:
+            lines.append(f"radius {r:g} m")
+            lines.append(f"  {'method':<24s} {'min_fitness':>11s} {'missed':>6s} "
+                         + " ".join(f"{reason:>{len(reason)}s}" for reason in MISSED_REASONS))
+            for name, by_fitness in outputs.missed.items():
+                for min_fitness, by_radius in by_fitness.items():
+                    counts = by_radius[r]
+                    lines.append(f"  {name:<24s} {min_fitness:>11g} {sum(counts.values()):>6d} "
+                                 + " ".join(f"{counts[reason]:>{len(reason)}d}" for reason in MISSED_REASONS))
     return "\n".join(lines)
 
 
