@@ -318,10 +318,9 @@ class VBRLMethod:
             # limit (P1 grows it with i, P2 keeps it): insert lazily, like online.
             limit = int(candidates[-1]) + 1 if len(candidates) else 0
             if len(index) < limit:
-                if positions is not None:
-                    for row in range(len(index), limit):
-                        stream.places.add(row, positions[row])
                 for row in range(len(index), limit):
+                    if positions is not None:
+                        stream.places.add(row, positions[row])
                     all_round.note(database.sees_all_round is not None and database.sees_all_round[row])
                     if database.has_all_round is not None and database.has_all_round[row]:
                         all_round.add(row, self.compact(database.all_round[row, :1])[0])

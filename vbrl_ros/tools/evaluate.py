@@ -335,9 +335,8 @@ def exact_agreement(args: argparse.Namespace, evaluation: Evaluation,
     agreement: dict[str, Any] = {"queries": int(asked.sum()), "same_top1": int(same.sum()),
                                  "retrieval": "exact" if args.exact else "index", "prune": args.prune}
     # headroom of the matches that count: brute-force top-1s within the radius
-    query_positions = (queries.positions if evaluation.alignment is None
-                       else apply_transform(queries.positions, evaluation.alignment))
-    correct = correct_mask(query_positions, database.positions, exact.indices[:, :1],
+    query_positions, database_positions = evaluation.ground_truth()
+    correct = correct_mask(query_positions, database_positions, exact.indices[:, :1],
                            args.radius, exact.database_limit)[:, 0]
     full = next(m for m in evaluation.methods if m.name == FULL_NAME)
     shares = headroom.key_rank_shares(full.new_index(), full.compact(queries.vbrl),
