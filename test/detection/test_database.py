@@ -177,14 +177,17 @@ def test_bytes_per_keyframe_is_descriptor_key_metadata_and_place():
     db, _ = make_db(0)
     active = D - 15
     key = -(-min(256, active) // 2)  # 4-bit key entries, at most one per active row
-    assert db.bytes_per_keyframe() == active * 4 + key + METADATA_BYTES_PER_KEYFRAME + 40
+    assert db.bytes_per_keyframe() == active * 4 + key + METADATA_BYTES_PER_KEYFRAME + 40 + 1
     assert db.bytes_breakdown() == {"descriptor": active * 4, "key": key, "yaw_key": 0,
-                                    "metadata": METADATA_BYTES_PER_KEYFRAME, "place": 40}
+                                    "metadata": METADATA_BYTES_PER_KEYFRAME, "place": 40, "sees_all_round": 1}
+    # an all-round descriptor: another descriptor with its keys, and the main row it belongs to
+    assert db.all_round_bytes_per_keyframe() == active * 4 + key + 8
     full = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), model_id="default")
     # 256 + 512 four-bit key entries (scan key, refine key)
-    assert full.bytes_per_keyframe() == 7872 * 4 + 384 + METADATA_BYTES_PER_KEYFRAME + 40 == 32204
+    assert full.bytes_per_keyframe() == 7872 * 4 + 384 + METADATA_BYTES_PER_KEYFRAME + 40 + 1 == 32205
     half = KeyframeDatabase(WeightedL1Scorer(np.ones(7872)), "default", IndexParameters(storage="float16"))
-    assert half.bytes_per_keyframe() == 7872 * 2 + 384 + METADATA_BYTES_PER_KEYFRAME + 40
+    assert half.bytes_per_keyframe() == 7872 * 2 + 384 + METADATA_BYTES_PER_KEYFRAME + 40 + 1
+    assert half.all_round_bytes_per_keyframe() == 7872 * 2 + 384 + 8
     assert full.cloud_bytes_per_keyframe() == 0.0
 
 
@@ -201,6 +204,19 @@ def test_the_metadata_and_place_figures_are_what_a_keyframe_adds_to_the_arrays()
     assert per_row(metadata) == METADATA_BYTES_PER_KEYFRAME
     places = db._places[0]
     assert per_row([places._ids, places._positions, places._chain]) == db.bytes_breakdown()["place"]
+    assert per_row([db.all_round.sees_all_round]) == db.bytes_breakdown()["sees_all_round"]
+
+
+def test_what_an_all_round_descriptor_adds_is_what_the_all_round_index_grows_by():
+    db = KeyframeDatabase(WeightedL1Scorer(np.ones(8)), model_id="m")
+    rng = np.random.default_rng(1)
+    for k in range(300):
+        db.add(rng.normal(size=8).astype(np.float32), float(k), "0", all_round=rng.normal(size=8).astype(np.float32))
+    store = db.all_round.index.store  # what one more row of each of its arrays holds
+    per_row = lambda arrays: sum(a.itemsize * int(np.prod(a.shape[1:])) for a in arrays)  # noqa: E731
+    stored = (per_row([store._descriptors, store.refine_key_bytes, store.yaw_coarse, store.yaw_fine])
+              + store.key_blocks.shape[1] + db.all_round.rows.itemsize)
+    assert len(db.all_round) == 300 and db.all_round_bytes_per_keyframe() == stored
 
 
 def test_add_is_amortised_constant_time():

@@ -88,8 +88,9 @@ def measure(sizes: tuple[int, ...] = DEFAULT_SIZES, repeats: int = 50, seed: int
 
 
 def _memory(scorer: WeightedL1Scorer, storage: str) -> dict[str, int]:
-    parts = KeyframeDatabase(scorer, "bench", IndexParameters(storage=storage)).bytes_breakdown()
-    return {**parts, "total": sum(parts.values())}
+    database = KeyframeDatabase(scorer, "bench", IndexParameters(storage=storage))
+    parts = database.bytes_breakdown()
+    return {**parts, "total": sum(parts.values()), "all_round": database.all_round_bytes_per_keyframe()}
 
 
 def drive_comparison(data: bd.DescriptorSet, reference: bd.DescriptorSet) -> dict[str, Any]:
@@ -317,7 +318,9 @@ def format_table(results: dict[str, Any]) -> str:
         lines.append(
             f"{name}: d={shape['d_active']} S={shape['sectors']}; bytes/keyframe float32 = "
             f"{m['descriptor']} descriptor + {m['key']} key + {m['yaw_key']} yaw key + "
-            f"{m['metadata']} metadata + {m['place']} place; drive ({d['queries']} winter queries vs {d['database']}): "
+            f"{m['metadata']} metadata + {m['place']} place + {m['sees_all_round']} flag "
+            f"(+ {m['all_round']} if also described all round); "
+            f"drive ({d['queries']} winter queries vs {d['database']}): "
             f"top-1 = brute force {d['top1_agreement']:.3f}, Recall@1 {d['recall_at_1_index']:.3f} "
             f"(brute force {d['recall_at_1_exact']:.3f}){yaw}")
     p = results["pruning"]

@@ -213,14 +213,20 @@ class KeyframeDatabase:
     # -- memory -------------------------------------------------------------
 
     def bytes_per_keyframe(self) -> int:
-        """Fixed bytes per keyframe: descriptor + search keys + metadata + place, no cloud."""
+        """Fixed bytes per keyframe: descriptor + search keys + metadata + place, no cloud and no
+        all-round descriptor (:meth:`all_round_bytes_per_keyframe`)."""
         return sum(self.bytes_breakdown().values())
 
     def bytes_breakdown(self) -> dict[str, int]:
-        """Per-keyframe bytes: descriptor, key, yaw_key (index), metadata and place (where it was
-        taken, for sequence matching by place)."""
+        """Per-keyframe bytes: descriptor, key, yaw_key (index), metadata, place (where it was
+        taken, for sequence matching by place) and whether it saw all round by itself."""
         return {**self.index.bytes_breakdown(), "metadata": METADATA_BYTES_PER_KEYFRAME,
-                "place": PLACE_BYTES_PER_KEYFRAME}
+                "place": PLACE_BYTES_PER_KEYFRAME, "sees_all_round": self.all_round.sees_all_round.itemsize}
+
+    def all_round_bytes_per_keyframe(self) -> int:
+        """What a keyframe also described all round adds to :meth:`bytes_per_keyframe` (a partly
+        blind sensor's keyframes mostly are: :mod:`vbrl_ros.index.all_round`)."""
+        return self.all_round.bytes_per_descriptor()
 
     def cloud_bytes_per_keyframe(self) -> float:
         """Mean bytes of stored cloud per keyframe (12 per point; 0 for an empty database)."""

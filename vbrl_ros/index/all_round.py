@@ -79,6 +79,11 @@ class AllRoundIndex:
         self._rows = grown(self._rows, n + 1)
         self._rows[n] = int(row)
 
+    def bytes_per_descriptor(self) -> int:
+        """What each keyframe also described all round adds: its descriptor with its search keys
+        and the main row it belongs to (each keyframe's own flag is not counted here)."""
+        return self.index.bytes_per_keyframe() + self._rows.itemsize
+
     def allowed(self, allowed: Allowed) -> Allowed:
         """``allowed`` (over the main index's rows) for this index's entries."""
         if allowed is None:
