@@ -2,7 +2,8 @@
 keyframe before it registered to the same place.
 
 A sparse hand-held sensor overlaps less after registration than a dense one, so some right
-closures score just under ``min_fitness`` (the Mid-360 walk: .14-.19 along a whole stretch);
+closures score just under ``min_fitness`` (the Mid-360 walk: .14-.19 along a whole stretch; another
+sensor's keyframes and a thinned robot's reversed revisits: .12-.2);
 lowering the threshold for all of them publishes wrong ones elsewhere. A wrong registration,
 though, rarely lands twice in a row where the path leads. Each registration says where the
 query sensor stood in the match's session: the match keyframe's pose times the registered

@@ -33,8 +33,10 @@ class DetectorSettings:
     verify: bool = True  # KISS-ICP registration of each candidate
     min_fitness: float = 0.2  # verified closures whose structure overlap is below this are rejected
     # a closure below min_fitness but at least this is accepted when two of the three keyframes before
-    # registered to the same place, agreeing with it (detection.corroboration); >= min_fitness: off
-    corroborated_fitness: float = 0.16
+    # registered to the same place, agreeing with it (detection.corroboration); >= min_fitness: off.
+    # Another sensor's or a thinned robot's right registrations overlap .12-.2; at .10 a lookalike
+    # passed three in a row (design 6.1 item 12)
+    corroborated_fitness: float = 0.12
     max_closure_distance: float = 5.0  # metres; verified closures between sensors farther apart are rejected
     verification_voxel: float = 1.0  # metres; stored clouds and registration use this voxel
     translation_search: float = -1.0  # metres between query viewpoints; 0: none; -1: the model's
