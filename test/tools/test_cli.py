@@ -90,7 +90,10 @@ def test_bench_prints_a_table_and_writes_json(tmp_path, capsys):
                 assert 0 <= r["yaw_correct"] <= 1
         m32, m16 = shape["memory"]["float32"], shape["memory"]["float16"]
         assert m32["descriptor"] == 2 * m16["descriptor"] == 4 * shape["d_active"]
-        assert m32["total"] == m32["descriptor"] + m32["key"] + m32["yaw_key"] + m32["metadata"] + m32["place"]
+        assert m32["total"] == (m32["descriptor"] + m32["key"] + m32["yaw_key"] + m32["metadata"] + m32["place"]
+                                + m32["sees_all_round"])
+        # a keyframe also described all round stores another descriptor with its keys and its row
+        assert m32["all_round"] == m32["descriptor"] + m32["key"] + m32["yaw_key"] + 8
         assert (m32["yaw_key"] > 0) == (sectors > 1)
         drive = shape["drive"]
         assert 0 <= drive["recall_at_1_index"] <= 1 and 0 <= drive["top1_agreement"] <= 1
