@@ -17,7 +17,6 @@ alongside for the ground truth.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from contextlib import ExitStack
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -44,7 +43,7 @@ from vbrl_ros.evaluation.metrics import DEFAULT_EXCLUDE
 from vbrl_ros.evaluation.retrieval import DistancesFn
 from vbrl_ros.evaluation.verified import TOP_K_RETRIEVED, KeyframeClouds
 from vbrl_ros.features.featurizer import Featurizer
-from vbrl_ros.features.parallel import bounded_map, default_workers
+from vbrl_ros.features.parallel import bounded_map, default_workers, worker_pool
 from vbrl_ros.features.blind_wedges import all_round_by_itself
 from vbrl_ros.features.trail import trail_clouds
 from vbrl_ros.index.keyframe_index import KeyframeIndex
@@ -204,7 +203,7 @@ def describe_source(
                 _init_worker(*init)
                 rows = map(_describe, pairs)
             else:
-                pool = stack.enter_context(ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init))
+                pool = stack.enter_context(worker_pool(workers, _init_worker, init))
                 rows = bounded_map(pool, _describe, pairs, 4 * workers)
             for views_of_scan, context, cloud, frame, round_views, sees in rows:
                 vbrl.append(views_of_scan), sc.append(context), clouds.append(cloud), frames.append(frame)

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,7 +43,7 @@ from vbrl_ros.detection.registration import QueryVerifier
 from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.detection.submaps import MAX_NEIGHBOUR_DISTANCE_M, KeyframeView, merged_cloud, neighbour_steps
 from vbrl_ros.evaluation.metrics import RetrievalMetrics
-from vbrl_ros.features.parallel import bounded_map, default_workers
+from vbrl_ros.features.parallel import bounded_map, default_workers, worker_pool
 
 __all__ = ["TOP_K_RETRIEVED", "Candidates", "Corroboration", "KeyframeClouds", "OdometryTrack", "OperatingPoint",
            "VerifiedCandidates", "best_verified", "node_decision", "operating_point", "plausible_candidates",
@@ -228,7 +227,7 @@ def verify_candidates(queries: KeyframeClouds, database: KeyframeClouds | None, 
                 fitness[q, r], rejection[q, r], transforms[q, r], retried_from[q, r] = f, why, T, first
                 bar.update()
         else:
-            with ProcessPoolExecutor(workers, initializer=_init_worker, initargs=initargs) as pool:
+            with worker_pool(workers, _init_worker, initargs) as pool:
                 for (q, r), (f, why, T, first) in zip(slots, bounded_map(pool, _verify, tasks, 8 * workers)):
                     fitness[q, r], rejection[q, r], transforms[q, r], retried_from[q, r] = f, why, T, first
                     bar.update()

@@ -2,12 +2,17 @@
 
 The caller's process reads the scans (I/O is sequential in bags) while worker
 processes describe them. :func:`init_worker` / :func:`describe_in_worker` are
-the workers' entry points for a ``ProcessPoolExecutor``; :func:`bounded_map`
+the workers' entry points for a :func:`worker_pool`; :func:`bounded_map`
 feeds one with at most so many scans in flight.
+
+Workers are forked from a fork server, never from the caller: a caller that has
+used DDS (a test, a user's node) or KISS-ICP keeps native threads running, and a
+fork of a process with threads can deadlock in the child on a lock one of them held.
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
@@ -50,6 +55,17 @@ def default_workers() -> int:
     return max(1, min(8, (os.cpu_count() or 1)))
 
 
+def worker_pool(workers: int, initializer: Callable[..., None], initargs: tuple) -> ProcessPoolExecutor:
+    """A pool of ``workers`` processes forked from a single-threaded fork server (``initargs`` are pickled).
+
+    The server is started once per process, with the first pool's initializer module imported
+    (numpy, numba, KISS-ICP): the workers of every later pool start from it in milliseconds.
+    """
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload([initializer.__module__])
+    return ProcessPoolExecutor(workers, mp_context=context, initializer=initializer, initargs=initargs)
+
+
 def featurize(
     scans: Iterable[Keyframe],
     config: VBRLConfig,
@@ -75,9 +91,7 @@ def featurize(
                 out.append(row)
                 bar.update()
         else:
-            with ProcessPoolExecutor(
-                workers, initializer=init_worker, initargs=(config.to_dict(),)
-            ) as pool:
+            with worker_pool(workers, init_worker, (config.to_dict(),)) as pool:
                 for row in bounded_map(pool, describe_in_worker, scans, 4 * workers):
                     out.append(row)
                     bar.update()

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,7 +43,14 @@ from vbrl_ros.config import VBRLConfig
 from vbrl_ros.datasets.keyframe_selection import select_keyframes
 from vbrl_ros.datasets.registry import open_source
 from vbrl_ros.features.featurizer import Featurizer
-from vbrl_ros.features.parallel import bounded_map, default_workers, describe_in_worker, describe_keyframe, init_worker
+from vbrl_ros.features.parallel import (
+    bounded_map,
+    default_workers,
+    describe_in_worker,
+    describe_keyframe,
+    init_worker,
+    worker_pool,
+)
 from vbrl_ros.model.gram import GramAccumulator, GramStats
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.model.solver import solve_vbrl
@@ -207,8 +213,7 @@ def stream_moments(
     moments = RawMoments(featurizer.dimension, len(scenario_names))
     info = StreamedSources(scenario_names)
     workers = default_workers() if workers is None else workers
-    pool = (ProcessPoolExecutor(workers, initializer=init_worker, initargs=(config.to_dict(),))
-            if workers > 1 else None)
+    pool = worker_pool(workers, init_worker, (config.to_dict(),)) if workers > 1 else None
     try:
         for path, name in zip(paths, names):
             with open_source(path, topic=topic, poses=poses, progress=progress) as source:
