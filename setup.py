@@ -34,6 +34,7 @@ setup(
         "test": [
             "pytest>=8",
             "pytest-xdist>=3",
+            "pytest-timeout>=2.3",
             "hypothesis>=6",
             "scikit-image>=0.22",
             "pyyaml>=6",

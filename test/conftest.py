@@ -1,7 +1,8 @@
-"""The ``--long`` option, and fixtures for the tests that read the package's structure: its modules, from the tree."""
+"""The ``--long`` option (which also lifts the per-test timeout), and fixtures for the tests that read the package's structure: its modules, from the tree."""
 
 from __future__ import annotations
 
+import faulthandler
 import pkgutil
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,6 +21,33 @@ ROS_PACKAGES = (
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--long", action="store_true",
                      help="run the reliability fuzz at full length (10k messages, 1k file mutations)")
+
+
+#: Seconds after setup.cfg's timeout at which a test still running ends its process.
+BACKSTOP_S = 120
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    # setup.cfg's per-test timeout catches hangs in the default run; --long runs for as long as it takes
+    if config.getoption("--long"):
+        for item in items:
+            item.add_marker(pytest.mark.timeout(0))
+
+
+@pytest.fixture(autouse=True)
+def hang_backstop(request: pytest.FixtureRequest) -> Iterator[None]:
+    """pytest-timeout's signal reaches Python code and blocking calls, not a thread stuck inside C++
+    (DDS): past the timeout and a margin, every thread's stack is printed and the process ends."""
+    marker = request.node.get_closest_marker("timeout")
+    timeout = float(marker.args[0]) if marker and marker.args else float(request.config.getini("timeout") or 0)
+    if timeout <= 0:
+        yield
+        return
+    faulthandler.dump_traceback_later(timeout + BACKSTOP_S, exit=True)
+    try:
+        yield
+    finally:
+        faulthandler.cancel_dump_traceback_later()
 
 
 @pytest.fixture(scope="session")
