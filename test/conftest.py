@@ -1,4 +1,5 @@
-"""The ``--long`` option (which also lifts the per-test timeout), and fixtures for the tests that read the package's structure: its modules, from the tree."""
+"""The ``--long`` option (which also lifts the per-test timeout), a backstop for tests stuck in C++,
+and fixtures for the tests that read the package's structure: its modules, from the tree."""
 
 from __future__ import annotations
 
