@@ -248,6 +248,13 @@ def test_domain_ids_are_distinct_per_call_and_per_xdist_worker(monkeypatch: pyte
         monkeypatch.setenv("PYTEST_XDIST_WORKER", f"gw{worker}")
         by_worker[worker] = {unique_domain_id() for _ in range(5)}
     assert sum(len(ids) for ids in by_worker.values()) == len(set().union(*by_worker.values())) == 20
+    # two workers running many DDS tests each: their ids never meet, however many they draw
+    monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", "2")
+    drawn = []
+    for worker in range(2):
+        monkeypatch.setenv("PYTEST_XDIST_WORKER", f"gw{worker}")
+        drawn.append({unique_domain_id() for _ in range(200)})
+    assert not drawn[0] & drawn[1] and len(drawn[0]) == len(drawn[1]) == 50
     env = isolated_ros_env(7, base={"ROS_LOCALHOST_ONLY": "1", "PATH": "/bin"})
     assert env == {"PATH": "/bin", "ROS_DOMAIN_ID": "7", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
                    "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}

@@ -12,7 +12,7 @@ Typical test::
 Isolation: every call of :func:`unique_domain_id` gives a new ``ROS_DOMAIN_ID``
 in 1..101 (0 is everyone's default; above 101 Fast DDS ports may collide
 with Linux ephemeral ports), discovery is limited to this host, and pytest-
-xdist workers of one run never share an id. Domain ids are few, so two
+xdist workers of one run never share an id (each has its own block). Domain ids are few, so two
 unrelated processes on one host can still draw the same one; that is harmless
 unless both publish the same topics at the same time.
 """
@@ -36,23 +36,24 @@ _calls = itertools.count()
 
 
 def unique_domain_id() -> int:
-    """A ROS domain id in 1..101 not used by an earlier call in this process, nor by another xdist worker.
+    """A ROS domain id in 1..101 not used by a recent call in this process, nor ever by another xdist worker.
 
-    Under pytest-xdist, worker ``gwK`` of ``n`` takes ids ``K, K + n, K + 2n, ...``
-    (shifted by a hash of the run's id, so two concurrent runs differ too): workers
-    stay disjoint for their first ``101 // n`` calls. Outside xdist the sequence
-    starts at an offset derived from the pid.
+    Under pytest-xdist, worker ``gwK`` of ``n`` cycles through its own block of
+    ``101 // n`` ids (started at a hash of the run's id, so two concurrent runs
+    differ too): however many DDS tests a worker runs, its ids never meet another
+    worker's, and one reused by the same worker belongs to a test that has ended.
+    Outside xdist the sequence starts at an offset derived from the pid.
     """
     call = next(_calls)
     worker = re.fullmatch(r"gw(\d+)", os.environ.get("PYTEST_XDIST_WORKER", ""))
     if worker:
         index = int(worker.group(1))
         workers = max(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0), index + 1)
+        block = max(1, DOMAIN_IDS // workers)
         offset = zlib.crc32(os.environ.get("PYTEST_XDIST_TESTRUNUID", "").encode())
-        slot = index + workers * call
-    else:
-        offset, slot = zlib.crc32(str(os.getpid()).encode()), call
-    return 1 + (offset + slot) % DOMAIN_IDS
+        return 1 + (index * block + (offset + call) % block) % DOMAIN_IDS
+    offset = zlib.crc32(str(os.getpid()).encode())
+    return 1 + (offset + call) % DOMAIN_IDS
 
 
 def isolated_ros_env(domain_id: int | None = None, base: Mapping[str, str] | None = None) -> dict[str, str]:
