@@ -1,4 +1,4 @@
-"""Verification in a child process: the same closures as in-process, and a dead child replaced."""
+"""Verification in a child process: the same closures as in-process, and a dead or stuck child replaced."""
 
 from __future__ import annotations
 
@@ -64,6 +64,22 @@ def test_a_child_killed_mid_verification_fails_that_call_and_the_next_starts_a_n
         threading.Timer(0.3, os.kill, (verifier.pid, signal.SIGKILL)).start()  # as the OOM killer would
         with pytest.raises(VerifierError, match="the verification process ended"):
             verifier.verify(slow)
+        assert verifier.verify(retrievals[0]).keyframe_id == retrievals[0].keyframe_id
+        assert verifier.starts == 2
+    finally:
+        verifier.stop()
+
+
+def test_a_child_that_stops_answering_is_killed_and_the_next_call_starts_a_new_one(retrievals):
+    verifier = VerifierProcess(SETTINGS, answer_timeout=2.0)
+    try:
+        verifier.start()
+        stuck = verifier.pid
+        os.kill(stuck, signal.SIGSTOP)  # as a deadlocked registration would: alive, silent
+        with pytest.raises(VerifierError, match="gave no answer in 2 s and was killed"):
+            verifier.verify(retrievals[0])
+        with pytest.raises(ProcessLookupError):  # killed, not left behind
+            os.kill(stuck, 0)
         assert verifier.verify(retrievals[0]).keyframe_id == retrievals[0].keyframe_id
         assert verifier.starts == 2
     finally:

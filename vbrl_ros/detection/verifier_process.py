@@ -31,6 +31,10 @@ if TYPE_CHECKING:
 
 #: Seconds a child may take to finish its registration and exit before it is killed.
 STOP_TIMEOUT_S = 10.0
+#: Seconds a child may take to start (imports, KISS-ICP's first call) and to answer one keyframe
+#: (a few registrations: well under a second) before it is taken for stuck and killed.
+START_TIMEOUT_S = 120.0
+ANSWER_TIMEOUT_S = 30.0
 
 
 class VerifierError(RuntimeError):
@@ -40,13 +44,15 @@ class VerifierError(RuntimeError):
 class VerifierProcess:
     """A child process that runs :func:`verify_candidates` with fixed settings.
 
-    :meth:`verify` blocks (without the GIL) until the answer comes. A child that died is
-    started again at the next call; the call that found it dead raises :class:`VerifierError`.
+    :meth:`verify` blocks (without the GIL) until the answer comes. A child that died, or gave
+    no answer within ``answer_timeout`` seconds (stopped, deadlocked), is killed and started
+    again at the next call; the call that found it so raises :class:`VerifierError`.
     One caller at a time.
     """
 
-    def __init__(self, settings: DetectorSettings) -> None:
+    def __init__(self, settings: DetectorSettings, answer_timeout: float = ANSWER_TIMEOUT_S) -> None:
         self.settings = settings
+        self.answer_timeout = answer_timeout
         self._context = multiprocessing.get_context("spawn")
         self._process: multiprocessing.process.BaseProcess | None = None
         self._connection: Connection | None = None
@@ -71,7 +77,7 @@ class VerifierProcess:
         self._connection = parent
         self.starts += 1
         try:
-            self._receive()  # ("ok", None) once warm
+            self._receive(max(START_TIMEOUT_S, self.answer_timeout))  # ("ok", None) once warm
         except BaseException:
             # e.g. Ctrl-C while the child starts: end it now, before it reads from a closed pipe
             # and prints a traceback of its own
@@ -79,9 +85,13 @@ class VerifierProcess:
             self.stop()
             raise
 
-    def _receive(self):
+    def _receive(self, timeout: float):
         assert self._connection is not None
         try:
+            if not self._connection.poll(timeout):
+                self._process.kill()  # a stopped or stuck child: a new one serves the next call
+                self.stop()
+                raise VerifierError(f"the verification process gave no answer in {timeout:g} s and was killed")
             status, payload = self._connection.recv()
         except (EOFError, OSError) as error:
             code = self._process.exitcode if self._process is not None else None
@@ -99,7 +109,7 @@ class VerifierProcess:
         except OSError as error:
             self.stop()
             raise VerifierError(f"the verification process is gone: {error!r}") from None
-        return self._receive()
+        return self._receive(self.answer_timeout)
 
     def stop(self) -> None:
         """Ask the child to exit after its current registration; kill it if it does not."""
