@@ -98,6 +98,7 @@ def run_node_session(
         [sys.executable, "-m", "vbrl_ros.ros.node", "--ros-args", *[a for p in params for a in ("-p", p)]],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
+    player = None
     try:
         if not collector.wait_for({"/diagnostics": 1}, timeout=60):
             raise RuntimeError("vbrl_node did not come up")
@@ -113,7 +114,9 @@ def run_node_session(
         )
         with SessionProgress(collector, bag.name, scans, progress) as bar:
             # keep spinning while the replay runs, so the probe's queues stay current
-            collector.spin_until(lambda: bar.update() or player.poll() is not None, timeout=timeout)
+            if not collector.spin_until(lambda: bar.update() or player.poll() is not None, timeout=timeout):
+                replay_output, _ = stop_process(player, signal.SIGINT, 30)
+                raise RuntimeError(f"the replay did not end within {timeout:g} s: {replay_output[-500:]}")
             replay_output, _ = player.communicate(timeout=30)
             if player.returncode != 0:
                 raise RuntimeError(f"replay failed: {replay_output}")
@@ -121,13 +124,31 @@ def run_node_session(
         if on_idle is not None:
             on_idle()
     finally:
-        node.send_signal(signal.SIGINT)
-        output, _ = node.communicate(timeout=120)
+        if player is not None and player.poll() is None:
+            stop_process(player, signal.SIGINT, 30)
+        output, killed = stop_process(node, signal.SIGINT, 120)
+        if killed:
+            output += "\n[vbrl_node did not exit within 120 s of SIGINT and was killed]"
     closures = [row for msg in collector.messages[CLOSURE_TOPIC] for row in parse_closures(msg)]
     markers = collector.messages[MARKER_TOPIC][-1] if collector.messages[MARKER_TOPIC] else None
     collector.close()
     probe.destroy_node()
     return SessionResult(closures, stats, markers, output, node.returncode)
+
+
+def stop_process(process: subprocess.Popen, how: int, timeout: float) -> tuple[str, bool]:
+    """Send ``how`` and wait ``timeout`` seconds for the exit; kill it if it does not come.
+
+    Returns its output and whether it had to be killed: a process stuck in its shutdown must
+    not outlive the session (it would keep its DDS domain busy)."""
+    process.send_signal(how)
+    try:
+        output, _ = process.communicate(timeout=timeout)
+        return output or "", False
+    except subprocess.TimeoutExpired:
+        process.kill()
+        output, _ = process.communicate()
+        return output or "", True
 
 
 class SessionProgress:
