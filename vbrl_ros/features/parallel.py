@@ -8,6 +8,9 @@ feeds one with at most so many scans in flight.
 Workers are forked from a fork server, never from the caller: a caller that has
 used DDS (a test, a user's node) or KISS-ICP keeps native threads running, and a
 fork of a process with threads can deadlock in the child on a lock one of them held.
+As with any pool that does not fork the caller, a script that featurizes, evaluates or
+trains with ``workers`` > 1 must guard its entry point with ``if __name__ == "__main__":``
+(the ``vbrl`` command does).
 """
 
 from __future__ import annotations
