@@ -6,10 +6,11 @@ import os
 import threading
 
 import numpy as np
+import pytest
 
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.features.featurizer import Featurizer
-from vbrl_ros.features.parallel import featurize, init_worker, worker_pool
+from vbrl_ros.features.parallel import WorkerPoolError, bounded_map, featurize, init_worker, worker_pool
 
 
 def scans(count: int) -> list[np.ndarray]:
@@ -38,3 +39,9 @@ def test_workers_come_from_a_fork_server_not_from_a_caller_with_threads():
         stop.set()
         busy.join()
     assert os.getpid() not in parents
+
+
+def test_a_worker_that_dies_is_one_line_naming_the_usual_causes():
+    with worker_pool(2, init_worker, (VBRLConfig().to_dict(),)) as pool:
+        with pytest.raises(WorkerPoolError, match="ended abruptly: out of memory or killed"):
+            list(bounded_map(pool, os._exit, [1, 1], 2))  # as the OOM killer would end it

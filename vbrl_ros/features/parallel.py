@@ -20,6 +20,7 @@ import os
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 import numpy as np
@@ -114,9 +115,18 @@ def bounded_map(
     every scan of a bag into memory before the first result comes back.
     """
     pending: deque[Future] = deque()
-    for item in items:
-        pending.append(pool.submit(fn, item))
-        if len(pending) >= in_flight:
+    try:
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) >= in_flight:
+                yield pending.popleft().result()
+        while pending:
             yield pending.popleft().result()
-    while pending:
-        yield pending.popleft().result()
+    except BrokenProcessPool:
+        raise WorkerPoolError("a worker process ended abruptly: out of memory or killed, or a script that "
+                              "starts workers without an if __name__ == \"__main__\": guard") from None
+
+
+class WorkerPoolError(ChildProcessError):
+    """A worker process of :func:`worker_pool` died; the message says what usually causes it, in one line
+    (an OSError, so that ``vbrl`` prints it as one)."""
