@@ -84,3 +84,28 @@ def test_a_child_that_stops_answering_is_killed_and_the_next_call_starts_a_new_o
         assert verifier.starts == 2
     finally:
         verifier.stop()
+
+
+@pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "stopped"])
+def test_a_child_lost_while_it_starts_fails_the_start_in_one_line_and_the_next_call_starts_a_new_one(
+        retrievals, how):
+    verifier = VerifierProcess(SETTINGS, start_timeout=5.0)
+    hit = []
+
+    def strike() -> None:  # once the child runs, before it has warmed up (imports take seconds)
+        pid = verifier.pid
+        if pid is None:
+            threading.Timer(0.01, strike).start()
+            return
+        os.kill(pid, how)
+        hit.append(pid)
+
+    try:
+        strike()
+        with pytest.raises(VerifierError, match="ended|gave no answer in 5 s"):
+            verifier.start()
+        assert hit and verifier.pid is None
+        assert verifier.verify(retrievals[0]).keyframe_id == retrievals[0].keyframe_id
+        assert verifier.starts == 2
+    finally:
+        verifier.stop()

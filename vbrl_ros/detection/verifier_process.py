@@ -50,9 +50,10 @@ class VerifierProcess:
     One caller at a time.
     """
 
-    def __init__(self, settings: DetectorSettings, answer_timeout: float = ANSWER_TIMEOUT_S) -> None:
+    def __init__(self, settings: DetectorSettings, answer_timeout: float = ANSWER_TIMEOUT_S,
+                 start_timeout: float = START_TIMEOUT_S) -> None:
         self.settings = settings
-        self.answer_timeout = answer_timeout
+        self.answer_timeout, self.start_timeout = answer_timeout, start_timeout
         self._context = multiprocessing.get_context("spawn")
         self._process: multiprocessing.process.BaseProcess | None = None
         self._connection: Connection | None = None
@@ -77,11 +78,12 @@ class VerifierProcess:
         self._connection = parent
         self.starts += 1
         try:
-            self._receive(max(START_TIMEOUT_S, self.answer_timeout))  # ("ok", None) once warm
+            self._receive(self.start_timeout)  # ("ok", None) once warm
         except BaseException:
             # e.g. Ctrl-C while the child starts: end it now, before it reads from a closed pipe
-            # and prints a traceback of its own
-            self._process.kill()
+            # and prints a traceback of its own (a child found dead or stuck is already gone)
+            if self._process is not None:
+                self._process.kill()
             self.stop()
             raise
 
