@@ -220,6 +220,16 @@ def test_a_trail_changes_what_vbrl_describes_and_is_reported(trained, tmp_path, 
     assert plain["metrics"]["Scan Context"] != trailed_sc["metrics"]["Scan Context"]
     assert vbrl(monkeypatch, "eval", summer, "--model", model, "--trail", "-1", "--quiet") == 2
     assert capsys.readouterr().err.strip() == "vbrl eval: error: --trail must be a number of metres in [0, 20]"
+    # the trail reaching ahead too merges the keyframe after each one as well, and says so
+    out, ahead = tmp_path / "ahead.json", tmp_path / "ahead.matches.json"
+    assert vbrl(monkeypatch, "eval", summer, "--model", model, "--json", out, "--dump-matches", ahead,
+                "--exclude", "20", "--no-ablations", "--no-scan-context", "--quiet", "--workers", "1",
+                "--trail", "12", "--trail-ahead", "12") == 0
+    report = _read(out)
+    assert report["trail_ahead_m"] == 12.0 and any("--trail-ahead" in note for note in report["notes"])
+    assert [row["distance"] for row in _read(ahead)] != pytest.approx(trailed)
+    assert vbrl(monkeypatch, "eval", summer, "--model", model, "--trail-ahead", "nan", "--quiet") == 2
+    assert capsys.readouterr().err.strip().endswith("--trail-ahead must be a number of metres in [0, 20]")
 
 
 @pytest.mark.parametrize("missing", ["query", "--against", "--model"])

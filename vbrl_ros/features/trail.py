@@ -95,6 +95,9 @@ class Trail:
         self.fill_blind_wedges = bool(fill_blind_wedges) and forward_reach_m > 0.0
         self._earlier: deque[_Earlier] = deque()
         self._forward = ForwardTrail(forward_reach_m, max_age)
+        #: The last keyframe's near trail as :meth:`clouds` merged it ([its points, each earlier
+        #: keyframe's...], its blind bins), or None when it was described without one.
+        self.near_parts: tuple[list[np.ndarray], np.ndarray] | None = None
         self._session: str | None = None
         self._travelled = 0.0
         self._last_position: np.ndarray | None = None
@@ -121,6 +124,7 @@ class Trail:
         round by itself or None): with ``fill_blind_wedges``, a keyframe with a blind wedge that the
         keyframes of its forward trail saw into (:func:`filling`) is also described all round
         (:mod:`vbrl_ros.index.all_round`)."""
+        self.near_parts = None
         if self.reach_m == 0.0 and self._forward.reach_m == 0.0:
             return TrailClouds(points, None)
         known = pose is not None and bool(np.all(np.isfinite(pose)))
@@ -151,6 +155,7 @@ class Trail:
         else:
             empty = empty_bins(xyz[:, :2]) if empty is None else empty
             parts, blind = self._near_parts(xyz, pose, empty)
+            self.near_parts = parts, blind
             merged = None if len(parts) == 1 else merged_confirmed(parts, blind | np.roll(blind, BINS // 2))
             if self.fill_blind_wedges and blind.any():
                 all_round = self._all_round(parts, blind, pose, stamp)

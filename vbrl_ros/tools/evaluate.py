@@ -164,6 +164,9 @@ def load(args: argparse.Namespace) -> Evaluation:
         config = replace(config, features=replace(config.features, fill_blind_wedges=args.fill_blind_wedges))
     notes += in_sample_warnings(full, [args.query, args.against])
     notes += evaluate_mounting.notes(args)
+    if args.trail_ahead > 0:
+        notes.append(f"VBRL's keyframes also merge the next {args.trail_ahead:g} m (--trail-ahead): vbrl_node "
+                     "does not, it describes a keyframe when it arrives")
     sc_config = evaluate_scan_context.config(args)
     step = full.translation_search() if args.translation_search is None else args.translation_search
     options = {"topic": args.topic, "poses": args.poses, "keyframe_distance": args.keyframe_distance,
@@ -171,7 +174,7 @@ def load(args: argparse.Namespace) -> Evaluation:
                "translation_search": step,
                "verification_voxel": DETECTOR_DEFAULTS.verification_voxel if args.verify else None,
                "blocked_azimuth": args.blocked_azimuth, "sc_trail": args.sc_trail,
-               "odometry_drift_deg": args.simulate_drift,
+               "odometry_drift_deg": args.simulate_drift, "trail_ahead_m": args.trail_ahead,
                # P1's trails stop short of what the protocol lets a query match; P2's as the node's
                "exclude": args.exclude if args.against is None else None}
     queries = describe_source(args.query, config, sc_config, mount_tilt=args.mount_tilt, **options)
@@ -323,7 +326,7 @@ def write_metrics(args: argparse.Namespace, evaluation: Evaluation,
         "methods": list(metrics), "notes": evaluation.notes,
         "retrieval": "exact" if args.exact else "index", "prune": args.prune,
         "grid": evaluation.models[FULL_NAME].config.grid.kind, "exact_agreement": agreement,
-        "trail_m": evaluation.trail_m, "sc_trail": bool(args.sc_trail),
+        "trail_m": evaluation.trail_m, "trail_ahead_m": args.trail_ahead, "sc_trail": bool(args.sc_trail),
         "metrics": {name: {f"{r:g}": m.summary() for r, m in by_r.items()}
                     for name, by_r in metrics.items()},
         "verified": None if verified is None else verified.summary(metrics),
