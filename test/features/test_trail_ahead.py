@@ -44,11 +44,11 @@ def test_a_keyframe_holds_the_keyframes_on_both_sides_within_reach():
     assert holds(clouds[0], poses[0], posts[2]) and not holds(clouds[0], poses[0], posts[3])
 
 
-def test_without_reaching_ahead_or_without_poses_it_is_the_trail():
+def test_without_reaching_ahead_without_poses_or_without_a_trail_behind_it_is_the_trail():
     scans, poses, _ = drive()
-    for ahead, with_poses in ((0.0, poses), (2.0, None)):
-        both = list(trail_clouds_both_ways(scans, with_poses, 2.0, ahead))
-        trail = list(trail_clouds(scans, with_poses, 2.0))
+    for reach, ahead, with_poses in ((2.0, 0.0, poses), (2.0, 2.0, None), (0.0, 2.0, poses)):
+        both = list(trail_clouds_both_ways(scans, with_poses, reach, ahead, forward_reach_m=60.0))
+        trail = list(trail_clouds(scans, with_poses, reach, forward_reach_m=60.0))
         assert all(np.array_equal(a[1], b[1]) for a, b in zip(both, trail))
 
 

@@ -26,8 +26,9 @@ def trail_clouds_both_ways(scans: Iterable[np.ndarray], poses: np.ndarray | None
                            ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None, bool | None]]:
     """:func:`~vbrl_ros.features.trail.trail_clouds`, with each keyframe that has a near trail also
     merged with the keyframes of the next ``ahead_m`` metres (nearest first, filled up as the trail
-    is, no nearer than ``max_age`` after it). Holds every scan in memory."""
-    if poses is None or ahead_m <= 0.0:
+    is, no nearer than ``max_age`` after it); a keyframe described without a trail behind it (``reach_m``
+    0, a dense or forward-looking scan) is described as before. Holds every scan in memory."""
+    if poses is None or ahead_m <= 0.0 or reach_m <= 0.0:
         yield from trail_clouds(scans, poses, reach_m, forward_reach_m, stamps, max_age, fill_blind_wedges)
         return
     scans = list(scans)
