@@ -9,6 +9,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from pytest_timeout import get_env_settings
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1] / "vbrl_ros"
 #: Top-level names of ROS 2 Python packages (rclpy and message/interface packages).
@@ -40,7 +41,9 @@ def hang_backstop(request: pytest.FixtureRequest) -> Iterator[None]:
     """pytest-timeout's signal reaches Python code and blocking calls, not a thread stuck inside C++
     (DDS): past the timeout and a margin, every thread's stack is printed and the process ends."""
     marker = request.node.get_closest_marker("timeout")
-    timeout = float(marker.args[0]) if marker and marker.args else float(request.config.getini("timeout") or 0)
+    # as pytest-timeout reads it: the marker, else --timeout, PYTEST_TIMEOUT or setup.cfg
+    timeout = marker.args[0] if marker and marker.args else get_env_settings(request.config).timeout
+    timeout = float(timeout or 0)
     if timeout <= 0:
         yield
         return
