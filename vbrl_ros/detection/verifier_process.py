@@ -81,18 +81,15 @@ class VerifierProcess:
             self._receive(self.start_timeout)  # ("ok", None) once warm
         except BaseException:
             # e.g. Ctrl-C while the child starts: end it now, before it reads from a closed pipe
-            # and prints a traceback of its own (a child found dead or stuck is already gone)
-            if self._process is not None:
-                self._process.kill()
-            self.stop()
+            # and prints a traceback of its own
+            self.stop(at_once=True)
             raise
 
     def _receive(self, timeout: float):
         assert self._connection is not None
         try:
             if not self._connection.poll(timeout):
-                self._process.kill()  # a stopped or stuck child: a new one serves the next call
-                self.stop()
+                self.stop(at_once=True)  # a stopped or stuck child: a new one serves the next call
                 raise VerifierError(f"the verification process gave no answer in {timeout:g} s and was killed")
             status, payload = self._connection.recv()
         except (EOFError, OSError) as error:
@@ -113,8 +110,11 @@ class VerifierProcess:
             raise VerifierError(f"the verification process is gone: {error!r}") from None
         return self._receive(self.answer_timeout)
 
-    def stop(self) -> None:
-        """Ask the child to exit after its current registration; kill it if it does not."""
+    def stop(self, *, at_once: bool = False) -> None:
+        """Ask the child to exit after its current registration; kill it if it does not (``at_once``:
+        kill it now, as one that is stuck or that must not read from a closed pipe)."""
+        if at_once and self._process is not None:
+            self._process.kill()
         if self._connection is not None:
             try:
                 self._connection.send(None)
