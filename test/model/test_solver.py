@@ -115,6 +115,14 @@ def test_a_vanishing_lambda_is_least_squares_not_an_overflow():
     assert r.objective_history[-1] < 1e-20 and np.isfinite(r.W).all()
 
 
+def test_a_lambda_whose_half_underflows_is_least_squares_not_nan():
+    """λ2 = 5e-324 (the smallest subnormal): λ/2 is 0, Λ = 0, and m Λ⁻¹ was 0/0."""
+    X, Y, g = make_problem(5, v=4, sizes=(2, 2), c=2, seed=0)
+    r = solve_vbrl(X, Y, g, 0.0, 5e-324, max_iter=100, tol=1e-12)
+    assert_monotone(r.objective_history, float(np.sum(Y ** 2)))
+    assert np.isfinite(r.W).all() and r.objective_history[-1] < 1e-20
+
+
 def smooth_gradient(W, X, Y, g, l1, l2):
     """∇ of Eq. 3 where every group is non-zero: 2X(XᵀW − Y) + ΛW with Λ from exact norms."""
     return 2 * X @ (X.T @ W - Y) + 2 * irls_weights(W, g, l1, l2, 0.0)[:, None] * W

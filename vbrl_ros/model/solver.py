@@ -195,9 +195,11 @@ def least_squares_x(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
 def woodbury_step(X: np.ndarray, Y: np.ndarray, lam: np.ndarray) -> np.ndarray:
     """W = Λ⁻¹X (I_n + XᵀΛ⁻¹X)⁻¹ Y, computed as S X (m I_n + XᵀSX)⁻¹ Y with m = min λ and
     S = m Λ⁻¹ ≤ I: the same W, but a tiny λ (1e-308) no longer overflows Λ⁻¹ to inf. SPD →
-    Cholesky, cost O(n²d); a Gram matrix singular to rounding (λ → 0 with dependent scans)
-    falls back to least squares."""
+    Cholesky, cost O(n²d); a Gram matrix singular to rounding (λ → 0 with dependent scans), or a
+    Λ that underflowed to 0, falls back to least squares."""
     m = float(lam.min())
+    if not m > 0.0:  # a λ so small (5e-324) that half of it underflows to 0: Λ = 0 is least squares
+        return least_squares_x(X, Y)
     scale = m / lam
     Xs = X * np.sqrt(scale)[:, None]
     K = Xs.T @ Xs
