@@ -192,6 +192,9 @@ class FeatureConfig:
     ``forward_trail_m`` describes a forward-looking keyframe with the earlier keyframes of the
     last ``forward_trail_m`` metres that looked at where it stands
     (:mod:`vbrl_ros.features.forward_trail`; 0 = alone).
+    ``trail_ahead_m`` also merges the keyframes of the next ``trail_ahead_m`` metres into a
+    keyframe with a trail, which waits to be described until the sensor has passed it
+    (:mod:`vbrl_ros.features.trail_ahead`; 0 = described when it comes); it needs ``trail_m``.
     ``fill_blind_wedges`` also describes a keyframe with a blind wedge all round where the
     keyframes of its forward trail saw into the wedge, compared only with keyframes described
     so (:mod:`vbrl_ros.index.all_round`); it needs ``mirror_blind_wedges`` and ``forward_trail_m``.
@@ -219,6 +222,7 @@ class FeatureConfig:
     trail_m: float = 0.0
     forward_trail_m: float = 0.0
     fill_blind_wedges: bool = False
+    trail_ahead_m: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "modalities", tuple(self.modalities))
@@ -287,6 +291,14 @@ class FeatureConfig:
             f"must be a number of metres in [0, {MAX_FORWARD_TRAIL_M:g}], got {self.forward_trail_m!r}",
         )
         _require(
+            isinstance(self.trail_ahead_m, (int, float)) and not isinstance(self.trail_ahead_m, bool)
+            and math.isfinite(self.trail_ahead_m) and 0.0 <= self.trail_ahead_m <= MAX_TRAIL_M
+            and (self.trail_ahead_m == 0.0 or self.trail_m > 0.0),
+            "features.trail_ahead_m",
+            f"must be a number of metres in [0, {MAX_TRAIL_M:g}], and above 0 only with a trail_m, "
+            f"got {self.trail_ahead_m!r}",
+        )
+        _require(
             isinstance(self.fill_blind_wedges, bool)
             and (not self.fill_blind_wedges or (self.mirror_blind_wedges and self.forward_trail_m > 0)),
             "features.fill_blind_wedges",
@@ -315,6 +327,8 @@ class FeatureConfig:
             del out["trail_m"]
         if self.forward_trail_m == 0.0:
             del out["forward_trail_m"]
+        if self.trail_ahead_m == 0.0:
+            del out["trail_ahead_m"]
         return out
 
     @property

@@ -9,7 +9,8 @@ from scipy.spatial.transform import Rotation
 
 from vbrl_ros.features.blind_wedges import empty_bins, sees_around
 from vbrl_ros.features.forward_trail import MAX_POINTS, RANGE_M, STEP_M, ForwardTrail
-from vbrl_ros.features.trail import TRAIL_POINTS, Trail, with_trail
+from vbrl_ros.features.session_trails import with_trail
+from vbrl_ros.features.trail import TRAIL_POINTS, Trail
 
 HALF_FIELD_DEG = 35.0  # a 70° forward-looking sensor
 

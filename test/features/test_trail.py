@@ -7,13 +7,13 @@ import pytest
 from scipy.spatial import cKDTree
 
 from vbrl_ros.features.blind_wedges import BINS, azimuth_bins, blind_bins, empty_bins, sees_all_round
+from vbrl_ros.features.session_trails import with_trail
 from vbrl_ros.features.trail import (
     CONFIRM_RANGE_M,
     MAX_TRAIL_KEYFRAMES,
     TRAIL_POINTS,
     Trail,
     confirmed,
-    with_trail,
 )
 
 

@@ -2,10 +2,18 @@
 
 from __future__ import annotations
 
-import numpy as np
+import math
 
-from vbrl_ros.features.trail import TRAIL_POINTS, trail_clouds
-from vbrl_ros.features.trail_ahead import trail_clouds_both_ways
+import numpy as np
+import pytest
+
+from vbrl_ros.features.session_trails import trail_clouds
+from vbrl_ros.features.trail import MAX_TRAIL_KEYFRAMES, TRAIL_POINTS
+from vbrl_ros.features.trail_ahead import TrailAhead
+
+
+def trail_clouds_both_ways(scans, poses, reach_m, ahead_m, **kwargs):
+    return trail_clouds(scans, poses, reach_m, ahead_m=ahead_m, **kwargs)
 
 
 def pose_at(x: float) -> np.ndarray:
@@ -66,3 +74,73 @@ def test_the_keyframes_after_one_respect_the_age_limit_as_those_before_it():
     k = 3  # one scan either way is younger than 2, two are not
     assert holds(clouds[k], poses[k], posts[2]) and holds(clouds[k], poses[k], posts[4])
     assert not holds(clouds[k], poses[k], posts[1]) and not holds(clouds[k], poses[k], posts[5])
+
+
+def test_a_keyframe_waits_until_the_sensor_has_passed_it_and_comes_with_what_lies_ahead():
+    scans, poses, posts = drive()
+    ahead = TrailAhead(2.0)
+    assert [ahead.add(k, scans[k], poses[k]) for k in range(3)] == [[], [], []]  # 2 m on: within reach
+    assert len(ahead) == 3
+    (item, parts), = ahead.add(3, scans[3], poses[3])  # 3 m past the first
+    assert item == 0 and len(parts) == 2 and len(ahead) == 3
+    assert all(holds(np.vstack(parts), poses[0], posts[j]) for j in (1, 2))
+    assert not holds(np.vstack(parts), poses[0], posts[3])
+    # the rest, oldest first, each with what came after it; the last with nothing
+    flushed = ahead.flush()
+    assert [item for item, _ in flushed] == [1, 2, 3] and [len(p) for _, p in flushed] == [2, 1, 0]
+    assert len(ahead) == 0 and ahead.flush() == []
+
+
+def test_a_break_in_the_chain_releases_every_waiting_keyframe_first_in_order():
+    scans, poses, _ = drive()
+    dense = np.zeros((TRAIL_POINTS, 3), np.float32)
+    dense[:, 0] = np.linspace(-30, 30, TRAIL_POINTS)
+    for breaker, pose, session in ((scans[2], None, ""), (scans[2], np.full((4, 4), np.nan), ""),
+                                   (dense, poses[2], ""), (scans[2], poses[2], "another")):
+        ahead = TrailAhead(5.0)
+        assert ahead.add(0, scans[0], poses[0]) == [] and ahead.add(1, scans[1], poses[1]) == []
+        due = ahead.add(2, breaker, pose, session=session)
+        if session:  # another session's first keyframe waits for its own
+            assert [(item, len(parts)) for item, parts in due] == [(0, 1), (1, 0)] and len(ahead) == 1
+        else:
+            assert [(item, len(parts)) for item, parts in due] == [(0, 1), (1, 0), (2, 0)] and len(ahead) == 0
+
+
+def test_none_later_than_the_age_limit_joins_and_its_arrival_releases():
+    scans, poses, _ = drive()
+    ahead = TrailAhead(10.0, max_age=2.0)
+    assert ahead.add(0, scans[0], poses[0], stamp=0.0) == [] and ahead.add(1, scans[1], poses[1], stamp=1.0) == []
+    assert [(item, len(parts)) for item, parts in ahead.add(2, scans[2], poses[2], stamp=2.0)] == [(0, 1)]
+
+
+def test_a_keyframe_that_does_not_see_all_round_does_not_wait_but_keeps_its_turn():
+    scans, poses, _ = drive()
+    forward = scans[1][scans[1][:, 0] > 5.0]  # a 70-degree view ahead
+    ahead = TrailAhead(2.0)
+    assert ahead.add(0, scans[0], poses[0]) == []
+    assert ahead.add(1, forward, poses[1]) == []  # behind the one still waiting
+    assert [(item, len(parts)) for item, parts in ahead.add(2, scans[2], poses[2])] == []
+    due = ahead.add(3, scans[3], poses[3])
+    assert [(item, len(parts)) for item, parts in due] == [(0, 2), (1, 0)]
+
+
+def test_a_standing_sensor_releases_once_those_after_it_fill_its_cloud():
+    scans, poses, _ = drive(count=1)
+    ahead = TrailAhead(2.0)
+    fill = -(-(TRAIL_POINTS - len(scans[0])) // len(scans[0]))  # keyframes after it that fill its cloud
+    assert all(ahead.add(k, scans[0], poses[0]) == [] for k in range(fill))
+    (item, parts), = ahead.add(fill, scans[0], poses[0])
+    assert item == 0 and len(parts) == fill and len(scans[0]) + sum(map(len, parts)) <= TRAIL_POINTS
+    # as many keyframes as a trail holds release the oldest whatever their points
+    angle = np.linspace(-np.pi, np.pi, 200, endpoint=False)
+    ahead, few = TrailAhead(2.0), np.column_stack([10 * np.cos(angle), 10 * np.sin(angle), np.ones(200)])
+    assert all(ahead.add(k, few, poses[0]) == [] for k in range(MAX_TRAIL_KEYFRAMES))
+    assert [item for item, _ in ahead.add(MAX_TRAIL_KEYFRAMES, few, poses[0])] == [0]
+
+
+def test_bad_reaches_are_refused():
+    for bad in (-1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="trail ahead must be a finite number of metres"):
+            TrailAhead(bad)
+    with pytest.raises(ValueError, match="max_age"):
+        TrailAhead(1.0, max_age=math.nan)

@@ -220,14 +220,23 @@ def test_a_trail_changes_what_vbrl_describes_and_is_reported(trained, tmp_path, 
     assert plain["metrics"]["Scan Context"] != trailed_sc["metrics"]["Scan Context"]
     assert vbrl(monkeypatch, "eval", summer, "--model", model, "--trail", "-1", "--quiet") == 2
     assert capsys.readouterr().err.strip() == "vbrl eval: error: --trail must be a number of metres in [0, 20]"
-    # the trail reaching ahead too merges the keyframe after each one as well, and says so
+    # the trail reaching ahead too merges the keyframe after each one as well; a model that was
+    # described so is evaluated so without being told
     out, ahead = tmp_path / "ahead.json", tmp_path / "ahead.matches.json"
     assert vbrl(monkeypatch, "eval", summer, "--model", model, "--json", out, "--dump-matches", ahead,
                 "--exclude", "20", "--no-ablations", "--no-scan-context", "--quiet", "--workers", "1",
                 "--trail", "12", "--trail-ahead", "12") == 0
-    report = _read(out)
-    assert report["trail_ahead_m"] == 12.0 and any("--trail-ahead" in note for note in report["notes"])
+    assert _read(out)["trail_ahead_m"] == 12.0
     assert [row["distance"] for row in _read(ahead)] != pytest.approx(trailed)
+    loaded = load_model(model)
+    both_ways = replace(loaded, config=replace(loaded.config, features=replace(
+        loaded.config.features, trail_m=12.0, trail_ahead_m=12.0))).save(tmp_path / "both_ways.npz")
+    out, own = tmp_path / "own.json", tmp_path / "own.matches.json"
+    assert vbrl(monkeypatch, "eval", summer, "--model", both_ways, "--json", out, "--dump-matches", own,
+                "--exclude", "20", "--no-ablations", "--no-scan-context", "--quiet", "--workers", "1") == 0
+    assert _read(out)["trail_ahead_m"] == 12.0
+    assert [row["distance"] for row in _read(own)] == pytest.approx([row["distance"] for row in _read(ahead)])
+    assert _read(tmp_path / "tNone.json")["trail_ahead_m"] == 0.0
     assert vbrl(monkeypatch, "eval", summer, "--model", model, "--trail-ahead", "nan", "--quiet") == 2
     assert capsys.readouterr().err.strip().endswith("--trail-ahead must be a number of metres in [0, 20]")
 

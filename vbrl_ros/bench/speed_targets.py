@@ -19,6 +19,7 @@ from vbrl_ros.config import VBRLConfig, VoxelGridConfig
 from vbrl_ros.datasets.mount_tilt import mount_rotation
 from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.features.trail import Trail
+from vbrl_ros.features.trail_ahead import TrailAhead
 from vbrl_ros.index.translation_search import view_offsets
 from vbrl_ros.training.presets import RECOGNITION_TRANSLATION_SEARCH_M, recognition_config
 
@@ -101,6 +102,7 @@ def measure(repeats: int = 30, config: VBRLConfig | None = None) -> dict[str, An
                                         "median_ms": 1e3 * tilted_s, "target_ms": 10.0},
         "describe_trail": {"points": SPARSE_POINTS, "dimension": recognition.dimension, "views": len(offsets),
                            "trail_m": recognition.config.features.trail_m, "spacing_m": TRAIL_SPACING_M,
+                           "trail_ahead_m": recognition.config.features.trail_ahead_m,
                            "median_ms": 1e3 * trail_s, "target_ms": 10.0},
         "describe_forward_trail": {"points": len(ahead), "dimension": recognition.dimension,
                                    "views": len(offsets), "trail_m": recognition.config.features.forward_trail_m,
@@ -112,15 +114,21 @@ def measure(repeats: int = 30, config: VBRLConfig | None = None) -> dict[str, An
 
 def sparse_keyframes_with_trail(featurizer: Featurizer, scan: np.ndarray, offsets: np.ndarray,
                                 spacing_m: float = TRAIL_SPACING_M) -> Callable[[], Any]:
-    """One call: the next keyframe of a walk, ``spacing_m`` on, merged with its trail and
-    described as the node describes it; after a few calls the trail holds its usual keyframes."""
-    trail = Trail(featurizer.config.features.trail_m, featurizer.config.features.forward_trail_m)
-    pose = np.eye(4)
+    """One call: the next keyframe of a walk, ``spacing_m`` on, and the one now passed by the trail
+    ahead (or this one) merged with its trail and described as the node describes it; after a few
+    calls the trails hold their usual keyframes."""
+    features = featurizer.config.features
+    trail = Trail(features.trail_m, features.forward_trail_m)
+    ahead = TrailAhead(features.trail_ahead_m if features.trail_m > 0 else 0.0)
+    position = [0.0]
 
     def next_keyframe() -> None:
-        pose[0, 3] += spacing_m
-        cloud = trail.cloud(scan, pose)
-        featurizer.describe_views(cloud, offsets, featurizer.frame(cloud, scan=scan))
+        position[0] += spacing_m
+        pose = np.eye(4)
+        pose[0, 3] = position[0]
+        for at, later in ahead.add(pose, scan, pose):
+            cloud = trail.cloud(scan, at, ahead=later)
+            featurizer.describe_views(cloud, offsets, featurizer.frame(cloud, scan=scan))
 
     return next_keyframe
 
@@ -145,7 +153,8 @@ def format_table(results: dict[str, Any]) -> str:
                               *results["describe_recognition_tilted"]["tilt_deg"]),
                            results["describe_recognition_tilted"]))
     ] + [
-        (f"describe a {kind} keyframe with its {t['trail_m']:g} m {trail}, built-in",
+        (f"describe a {kind} keyframe with its {t['trail_m']:g} m {trail}"
+         + (f" and {t['trail_ahead_m']:g} m ahead" if t.get("trail_ahead_m") else "") + ", built-in",
          f"{t['points']:,} points a keyframe, {t['spacing_m']:g} m apart",
          f"{t['median_ms']:.2f} ms", f"<= {t['target_ms']:.0f} ms", "ok" if t["median_ms"] <= t["target_ms"] else "MISSED")
         for kind, trail, t in (("sparse", "trail", results["describe_trail"]),

@@ -42,15 +42,15 @@ from vbrl_ros.evaluation.baselines.scan_context import (
 from vbrl_ros.evaluation.metrics import DEFAULT_EXCLUDE
 from vbrl_ros.evaluation.retrieval import DistancesFn
 from vbrl_ros.evaluation.verified import TOP_K_RETRIEVED, KeyframeClouds
+from vbrl_ros.features.blind_wedges import all_round_by_itself
 from vbrl_ros.features.featurizer import Featurizer
 from vbrl_ros.features.parallel import bounded_map, default_workers, worker_pool
-from vbrl_ros.features.blind_wedges import all_round_by_itself
-from vbrl_ros.features.trail_ahead import trail_clouds_both_ways
+from vbrl_ros.features.session_trails import trail_clouds
+from vbrl_ros.index.all_round import AllRoundIndex, search_all_round
 from vbrl_ros.index.keyframe_index import KeyframeIndex
 from vbrl_ros.index.keyframe_places import KeyframePlaces
 from vbrl_ros.index.parameters import IndexParameters
 from vbrl_ros.index.sequence_matching import DEFAULT_LENGTH, PLACE_SLACK_M, SequenceHistory
-from vbrl_ros.index.all_round import AllRoundIndex, search_all_round
 from vbrl_ros.index.translation_search import Rescore, view_offsets
 from vbrl_ros.model.model_file import VBRLModel
 from vbrl_ros.model.scoring import WeightedL1Scorer
@@ -161,7 +161,6 @@ def describe_source(
     sc_trail: bool = False,
     odometry_drift_deg: float = 0.0,
     exclude: int | None = DEFAULT_EXCLUDE,
-    trail_ahead_m: float = 0.0,
 ) -> SourceDescriptors:
     """Read the keyframes of ``path`` once and compute both descriptors of each (and the VBRL
     views of :func:`~vbrl_ros.index.translation_search.view_offsets` for ``translation_search`` > 0;
@@ -173,8 +172,7 @@ def describe_source(
     odometry reads the poses drifted so (:mod:`vbrl_ros.datasets.odometry_drift`). A keyframe's
     trail reaches back less than half ``exclude`` scans (P1: it never holds a keyframe a
     candidate, or a candidate's submap, holds); ``exclude`` None: less than half the node's
-    default ``exclude_recent_s``, by the source's stamps, as the node's does (P2). ``trail_ahead_m``:
-    a trail also takes the keyframes of the next metres (:mod:`vbrl_ros.features.trail_ahead`)."""
+    default ``exclude_recent_s``, by the source's stamps, as the node's does (P2)."""
     workers = default_workers() if workers is None else workers
     offsets = view_offsets(translation_search)
     init = (config.to_dict(), asdict(sc_config), offsets, verification_voxel, sc_trail)
@@ -193,9 +191,10 @@ def describe_source(
             scans = (points[outside_wedge(points, blocked_azimuth)] for points in scans)
         # None where the scan is described alone: the worker is not sent the same points twice
         pairs = ((points, None if cloud is points else cloud, all_round, sees) for points, cloud, all_round, sees in
-                 trail_clouds_both_ways(scans, poses, config.features.trail_m, trail_ahead_m,
-                                        config.features.forward_trail_m, **trail_horizon(source, indices, exclude),
-                                        fill_blind_wedges=config.features.fill_blind_wedges))
+                 trail_clouds(scans, poses, config.features.trail_m, config.features.forward_trail_m,
+                              **trail_horizon(source, indices, exclude),
+                              fill_blind_wedges=config.features.fill_blind_wedges,
+                              ahead_m=config.features.trail_ahead_m))
         bar = tqdm(total=len(indices), desc=f"describing {source.name}", unit="scan",
                    disable=not progress, leave=False)
         vbrl, sc, clouds, frames, all_round, whole = [], [], [], [], [], []

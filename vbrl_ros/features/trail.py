@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -95,9 +95,6 @@ class Trail:
         self.fill_blind_wedges = bool(fill_blind_wedges) and forward_reach_m > 0.0
         self._earlier: deque[_Earlier] = deque()
         self._forward = ForwardTrail(forward_reach_m, max_age)
-        #: The last keyframe's near trail as :meth:`clouds` merged it ([its points, each earlier
-        #: keyframe's...], its blind bins), or None when it was described without one.
-        self.near_parts: tuple[list[np.ndarray], np.ndarray] | None = None
         self._session: str | None = None
         self._travelled = 0.0
         self._last_position: np.ndarray | None = None
@@ -112,19 +109,20 @@ class Trail:
         self._last_position = None
 
     def cloud(self, points: np.ndarray, pose: np.ndarray | None, session: str = "",
-              stamp: float = math.nan) -> np.ndarray:
+              stamp: float = math.nan, ahead: Sequence[np.ndarray] = ()) -> np.ndarray:
         """``points`` (N, >=3) merged with the trail in their own frame, (M, 3); ``points`` itself
         when there is nothing to merge. ``pose``: T_world_lidar, None when unknown. ``stamp``: when
-        it was taken; keyframes ``max_age`` or more before it are not merged (NaN: no limit)."""
-        return self.clouds(points, pose, session, stamp)[0]
+        it was taken; keyframes ``max_age`` or more before it are not merged (NaN: no limit).
+        ``ahead``: as :meth:`clouds`'."""
+        return self.clouds(points, pose, session, stamp, ahead)[0]
 
     def clouds(self, points: np.ndarray, pose: np.ndarray | None, session: str = "",
-               stamp: float = math.nan) -> TrailClouds:
+               stamp: float = math.nan, ahead: Sequence[np.ndarray] = ()) -> TrailClouds:
         """(:meth:`cloud`, the cloud it is described by all round or None, whether the first sees all
         round by itself or None): with ``fill_blind_wedges``, a keyframe with a blind wedge that the
         keyframes of its forward trail saw into (:func:`filling`) is also described all round
-        (:mod:`vbrl_ros.index.all_round`)."""
-        self.near_parts = None
+        (:mod:`vbrl_ros.index.all_round`). ``ahead``: the points of the keyframes after it, in its
+        frame (:class:`~vbrl_ros.features.trail_ahead.TrailAhead`), merged as its trail's are."""
         if self.reach_m == 0.0 and self._forward.reach_m == 0.0:
             return TrailClouds(points, None)
         known = pose is not None and bool(np.all(np.isfinite(pose)))
@@ -155,8 +153,9 @@ class Trail:
         else:
             empty = empty_bins(xyz[:, :2]) if empty is None else empty
             parts, blind = self._near_parts(xyz, pose, empty)
-            self.near_parts = parts, blind
-            merged = None if len(parts) == 1 else merged_confirmed(parts, blind | np.roll(blind, BINS // 2))
+            # a keyframe that does not see all round has no trail, and none ahead
+            both = [*parts, *ahead] if sees_around(empty) else parts
+            merged = None if len(both) == 1 else merged_confirmed(both, blind | np.roll(blind, BINS // 2))
             if self.fill_blind_wedges and blind.any():
                 all_round = self._all_round(parts, blind, pose, stamp)
             # merging keeps every own point and adds where no blind bin is: no bin empties, none fills one
@@ -265,25 +264,3 @@ def confirmed(points: np.ndarray, keyframe_of: np.ndarray) -> np.ndarray:
         seen_by[voxel[start:end]] += 1
     keep[within] = (of == 0) | (seen_by[voxel] >= 2)
     return keep
-
-
-def with_trail(scans: Iterable[np.ndarray], poses: np.ndarray | None,
-               reach_m: float, forward_reach_m: float = 0.0, stamps: np.ndarray | None = None,
-               max_age: float = math.inf) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """(scan, the cloud it is described by) of each of ``scans`` in order, one session whose
-    ``poses`` (n, 4, 4) are T_world_lidar (None: no trail); ``stamps`` and ``max_age`` as
-    :meth:`Trail.cloud`'s."""
-    for points, cloud, *_ in trail_clouds(scans, poses, reach_m, forward_reach_m, stamps, max_age):
-        yield points, cloud
-
-
-def trail_clouds(scans: Iterable[np.ndarray], poses: np.ndarray | None,
-                 reach_m: float, forward_reach_m: float = 0.0, stamps: np.ndarray | None = None,
-                 max_age: float = math.inf, fill_blind_wedges: bool = False,
-                 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None, bool | None]]:
-    """:func:`with_trail` with the rest of each scan's :meth:`Trail.clouds` (its all-round cloud and
-    whether it sees all round) after it."""
-    trail = Trail(reach_m, forward_reach_m, max_age, fill_blind_wedges) if poses is not None else Trail(0.0)
-    for k, points in enumerate(scans):
-        yield points, *trail.clouds(points, None if poses is None else poses[k],
-                                    stamp=math.nan if stamps is None else float(stamps[k]))

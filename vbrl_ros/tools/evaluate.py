@@ -102,6 +102,7 @@ class Evaluation:
     radii: list[float]
     trail_m: float = 0.0  # metres of keyframes merged into each one before VBRL describes it
     width: int = TOP_K_RETRIEVED  # candidates retrieved per query: enough for --verify-top-k's spares
+    trail_ahead_m: float = 0.0  # metres of keyframes after each one merged in as well
 
     def ground_truth(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The queries' and the stored keyframes' true positions, in the stored keyframes' frame."""
@@ -162,11 +163,12 @@ def load(args: argparse.Namespace) -> Evaluation:
                                                   and args.forward_trail > 0))  # fills from the forward trail
     if args.fill_blind_wedges is not None:
         config = replace(config, features=replace(config.features, fill_blind_wedges=args.fill_blind_wedges))
+    ahead = config.features.trail_ahead_m if args.trail_ahead is None else float(args.trail_ahead)
+    # no trail behind, none ahead
+    config = replace(config, features=replace(config.features,
+                                              trail_ahead_m=ahead if config.features.trail_m > 0 else 0.0))
     notes += in_sample_warnings(full, [args.query, args.against])
     notes += evaluate_mounting.notes(args)
-    if args.trail_ahead > 0:
-        notes.append(f"VBRL's keyframes also merge the next {args.trail_ahead:g} m (--trail-ahead): vbrl_node "
-                     "does not, it describes a keyframe when it arrives")
     sc_config = evaluate_scan_context.config(args)
     step = full.translation_search() if args.translation_search is None else args.translation_search
     options = {"topic": args.topic, "poses": args.poses, "keyframe_distance": args.keyframe_distance,
@@ -174,7 +176,7 @@ def load(args: argparse.Namespace) -> Evaluation:
                "translation_search": step,
                "verification_voxel": DETECTOR_DEFAULTS.verification_voxel if args.verify else None,
                "blocked_azimuth": args.blocked_azimuth, "sc_trail": args.sc_trail,
-               "odometry_drift_deg": args.simulate_drift, "trail_ahead_m": args.trail_ahead,
+               "odometry_drift_deg": args.simulate_drift,
                # P1's trails stop short of what the protocol lets a query match; P2's as the node's
                "exclude": args.exclude if args.against is None else None}
     queries = describe_source(args.query, config, sc_config, mount_tilt=args.mount_tilt, **options)
@@ -191,7 +193,8 @@ def load(args: argparse.Namespace) -> Evaluation:
     if args.scan_context:
         methods.append(ScanContextMethod(sc_config, args.sc_candidates, args.sc_sequence_length))
     return Evaluation("P1" if args.against is None else "P2", queries, database, models, methods,
-                      notes, alignment, sorted({float(args.radius), *REPORT_RADII}), config.features.trail_m, width)
+                      notes, alignment, sorted({float(args.radius), *REPORT_RADII}), config.features.trail_m, width,
+                      trail_ahead_m=config.features.trail_ahead_m)
 
 
 def retrieve(args: argparse.Namespace, evaluation: Evaluation, method: Any) -> RetrievalResults:
@@ -326,7 +329,7 @@ def write_metrics(args: argparse.Namespace, evaluation: Evaluation,
         "methods": list(metrics), "notes": evaluation.notes,
         "retrieval": "exact" if args.exact else "index", "prune": args.prune,
         "grid": evaluation.models[FULL_NAME].config.grid.kind, "exact_agreement": agreement,
-        "trail_m": evaluation.trail_m, "trail_ahead_m": args.trail_ahead, "sc_trail": bool(args.sc_trail),
+        "trail_m": evaluation.trail_m, "trail_ahead_m": evaluation.trail_ahead_m, "sc_trail": bool(args.sc_trail),
         "metrics": {name: {f"{r:g}": m.summary() for r, m in by_r.items()}
                     for name, by_r in metrics.items()},
         "verified": None if verified is None else verified.summary(metrics),

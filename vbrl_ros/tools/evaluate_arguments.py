@@ -29,11 +29,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="VBRL: describe each keyframe with the keyframes of the last M metres merged "
                              "in by the source's poses, as the node does with odometry (default: the "
                              "model's own setting; 0: each keyframe alone)")
-    parser.add_argument("--trail-ahead", type=float, default=0.0, metavar="M",
+    parser.add_argument("--trail-ahead", type=float, default=None, metavar="M",
                         help="VBRL: also merge into each keyframe with a trail the keyframes of the next M "
-                             "metres, as a describer would that waits until it has passed the keyframe by "
-                             "M metres (vbrl_node does not: it describes a keyframe when it arrives; "
-                             "default 0)")
+                             "metres, as the node does once the sensor has passed the keyframe by M metres "
+                             "(default: the model's own setting; 0: none)")
     parser.add_argument("--forward-trail", type=float, default=None, metavar="M",
                         help="VBRL: describe each forward-looking keyframe with the keyframes of the "
                              "last M metres that looked at where it stands, as the node does with "
@@ -93,7 +92,7 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise ValueError("--translation-search must be a step in [0, 10] metres")
     if args.trail is not None and not (math.isfinite(args.trail) and 0 <= args.trail <= MAX_TRAIL_M):
         raise ValueError(f"--trail must be a number of metres in [0, {MAX_TRAIL_M:g}]")
-    if not (math.isfinite(args.trail_ahead) and 0 <= args.trail_ahead <= MAX_TRAIL_M):
+    if args.trail_ahead is not None and not (math.isfinite(args.trail_ahead) and 0 <= args.trail_ahead <= MAX_TRAIL_M):
         raise ValueError(f"--trail-ahead must be a number of metres in [0, {MAX_TRAIL_M:g}]")
     if args.forward_trail is not None and not (math.isfinite(args.forward_trail)
                                                and 0 <= args.forward_trail <= MAX_FORWARD_TRAIL_M):

@@ -21,7 +21,7 @@ import numpy as np
 from vbrl_ros.config import VBRLConfig
 from vbrl_ros.evaluation.methods import scan_trail_horizon
 from vbrl_ros.features.parallel import featurize
-from vbrl_ros.features.trail import with_trail
+from vbrl_ros.features.session_trails import with_trail
 from vbrl_ros.model.builtin import DEFAULT_MODEL_PATH
 from vbrl_ros.training.fit import TrainingResult, fit_model
 from vbrl_ros.training.presets import RECOGNITION_TRANSLATION_SEARCH_M, recognition_config
@@ -72,7 +72,8 @@ def simulated_recognition_data(towns: tuple[SimulatedTown, ...], config: VBRLCon
         run = simulate_run(town, route, lidar, town_spec.scenario, seed=town_spec.run_seed)
         name = f"town{town_spec.town_seed}_{town_spec.sensor_height_m:g}m_{town_spec.beams}beams"
         scans = with_trail((scan.points for scan in run), run.poses, config.features.trail_m,
-                           config.features.forward_trail_m, **scan_trail_horizon(range(len(run))))
+                           config.features.forward_trail_m, **scan_trail_horizon(range(len(run))),
+                           ahead_m=config.features.trail_ahead_m)
         descriptors = featurize(scans, config, total=len(run),
                                 progress=progress, description=f"simulating {name}")
         out.append((name, descriptors, run.poses[:, :3, 3]))

@@ -14,7 +14,7 @@ from vbrl_ros.datasets.keyframe_selection import keyframe_poses, select_keyframe
 from vbrl_ros.datasets.registry import open_source
 from vbrl_ros.evaluation.methods import scan_trail_horizon
 from vbrl_ros.features.parallel import featurize
-from vbrl_ros.features.trail import with_trail
+from vbrl_ros.features.session_trails import with_trail
 
 
 @dataclass
@@ -33,7 +33,8 @@ def described_clouds(source: ScanSource, indices: Sequence[int],
                      config: VBRLConfig) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(points, the cloud it is described by: with its trail) of the keyframes ``indices`` of ``source``."""
     return with_trail(source_points(source, indices), keyframe_poses(source, indices), config.features.trail_m,
-                      config.features.forward_trail_m, **scan_trail_horizon(indices))
+                      config.features.forward_trail_m, **scan_trail_horizon(indices),
+                      ahead_m=config.features.trail_ahead_m)
 
 
 def source_labels(paths: list[Path], labels: list[str] | None) -> list[str]:
