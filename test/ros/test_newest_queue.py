@@ -30,3 +30,13 @@ def test_close_wakes_a_waiting_consumer_and_ends_taking():
 def test_capacity_must_be_positive():
     with pytest.raises(ValueError, match="capacity"):
         NewestQueue(0)
+
+
+def test_a_take_with_a_timeout_raises_when_nothing_comes_and_returns_what_does():
+    queue = NewestQueue(2)
+    with pytest.raises(TimeoutError, match="nothing came within 0.05 s"):
+        queue.take(timeout=0.05)
+    queue.put(7)
+    assert queue.take(timeout=0.05) == 7
+    queue.close()
+    assert queue.take(timeout=0.05) is None  # closed is not a timeout

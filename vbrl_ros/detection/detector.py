@@ -12,9 +12,10 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import replace
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -37,9 +38,21 @@ from vbrl_ros.detection.settings import DetectorSettings
 from vbrl_ros.detection.submaps import WIDER_NEIGHBOUR_DISTANCE_M
 from vbrl_ros.features.blind_wedges import all_round_by_itself, looks_forward
 from vbrl_ros.features.trail import Trail
+from vbrl_ros.features.trail_ahead import TrailAhead
 from vbrl_ros.index.sequence_matching import SequenceHistory
 from vbrl_ros.index.translation_search import view_offsets
 from vbrl_ros.model.model_file import VBRLModel
+
+
+class Keyframe(NamedTuple):
+    """A keyframe due to be described (:meth:`LoopClosureDetector.keyframes_due`)."""
+
+    points: np.ndarray
+    stamp: float
+    pose: np.ndarray | None
+    gravity: np.ndarray | None
+    ahead: list[np.ndarray]  # the points of the keyframes after it, in its frame (features.trail_ahead)
+    tag: Any  # what the caller gave with it
 
 
 class LoopClosureDetector:
@@ -48,9 +61,10 @@ class LoopClosureDetector:
     ``distance_threshold``: the settings' one; where they say 0, none with verification (every one
     of the ``top_k`` is verified) and the model's own without.
 
-    :meth:`process_keyframe` does it all in one call; the node calls :meth:`retrieve` and
-    verifies the :class:`Retrieval` with :func:`verify_candidates` in another process, while
-    the next keyframe is described and searched.
+    :meth:`process_keyframe` does it all in one call; the node hands each keyframe to
+    :meth:`keyframes_due`, calls :meth:`retrieve_keyframe` for each one due and verifies the
+    :class:`Retrieval` with :func:`verify_candidates` in another process, while the next
+    keyframe is described and searched.
     """
 
     def __init__(self, model: VBRLModel, database: KeyframeDatabase, settings: DetectorSettings) -> None:
@@ -68,6 +82,9 @@ class LoopClosureDetector:
         features = model.config.features
         self.trail = Trail(features.trail_m, features.forward_trail_m, max_age=submap_gap_s(settings),
                            fill_blind_wedges=features.fill_blind_wedges and settings.fill_blind_wedges)
+        # keyframes waiting for the sensor to pass them, described in the order they came
+        self.trail_ahead: TrailAhead[Keyframe] = TrailAhead(
+            features.trail_ahead_m if features.trail_m > 0 else 0.0, max_age=submap_gap_s(settings))
         self.scorer = database.scorer
         self.sequence = SequenceHistory(settings.sequence_length)
         self.recent = RecentRegistrations()  # what the last keyframes registered to, to corroborate with
@@ -84,7 +101,8 @@ class LoopClosureDetector:
         gravity: np.ndarray | None = None,
     ) -> KeyframeResult:
         """``pose``: T_world_lidar (stored); ``gravity``: 3x3 sensor -> gravity-aligned rotation
-        (odometry's roll and pitch) to level by instead of the scan's own ground."""
+        (odometry's roll and pitch) to level by instead of the scan's own ground. Described at
+        once, without the keyframes after it (:meth:`keyframes_due` waits for them)."""
         return self.verified(self.retrieve(points, stamp, pose, gravity),
                              lambda retrieval: verify_candidates(retrieval, self.settings))
 
@@ -176,14 +194,35 @@ class LoopClosureDetector:
             return False
         return agrees_with_odometry(at, here, path, self.settings.odometry_drift)
 
+    def keyframes_due(
+        self, points: np.ndarray, stamp: float, pose: np.ndarray | None = None,
+        gravity: np.ndarray | None = None, tag: Any = None,
+    ) -> list[Keyframe]:
+        """Take a keyframe (arguments as :meth:`process_keyframe`; ``tag`` comes back with it);
+        the keyframes now due to be described, oldest first: with the model's
+        ``features.trail_ahead_m`` one with a trail waits until odometry has carried the sensor
+        that far past it (:class:`~vbrl_ros.features.trail_ahead.TrailAhead`), else it is due at once."""
+        item = Keyframe(points, stamp, pose, gravity, [], tag)
+        return [keyframe._replace(ahead=ahead) for keyframe, ahead in
+                self.trail_ahead.add(item, points, pose, self.settings.session, stamp)]
+
+    def keyframes_waiting(self) -> list[Keyframe]:
+        """Every keyframe still waiting, now due with what came after it (the input fell silent, or stops)."""
+        return [keyframe._replace(ahead=ahead) for keyframe, ahead in self.trail_ahead.flush()]
+
+    def retrieve_keyframe(self, keyframe: Keyframe) -> Retrieval:
+        """:meth:`retrieve` of a keyframe :meth:`keyframes_due` returned, in that order."""
+        return self.retrieve(keyframe.points, keyframe.stamp, keyframe.pose, keyframe.gravity, keyframe.ahead)
+
     def retrieve(
         self, points: np.ndarray, stamp: float, pose: np.ndarray | None = None,
-        gravity: np.ndarray | None = None,
+        gravity: np.ndarray | None = None, ahead: Sequence[np.ndarray] = (),
     ) -> Retrieval:
-        """Describe the keyframe, find its candidates, store it (arguments as :meth:`process_keyframe`)."""
+        """Describe the keyframe, find its candidates, store it (arguments as :meth:`process_keyframe`;
+        ``ahead``: :attr:`Keyframe.ahead`)."""
         cfg = self.settings
         t0 = time.perf_counter()
-        described, all_round, sees = self.trail.clouds(points, pose, cfg.session, stamp=stamp)
+        described, all_round, sees = self.trail.clouds(points, pose, cfg.session, stamp=stamp, ahead=ahead)
         frame = self.featurizer.frame(described, gravity, scan=points)
         views = self.scorer.compact(self.model.standardize(
             self.featurizer.describe_views(described, self.view_offsets, frame)))

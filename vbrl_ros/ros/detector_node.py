@@ -4,7 +4,9 @@ A thin adapter around :class:`~vbrl_ros.detection.detector.LoopClosureDetector`,
 in three threads and a process. The subscription callback (executor thread)
 reads a serialized cloud's stamp, decides whether it is a keyframe and only
 then decodes it into a short queue; the worker thread describes,
-searches and stores the keyframe; a child process
+searches and stores the keyframe (with a model that describes a keyframe with the metres
+after it too, once the sensor has passed it: after as long a silence as the trail ahead
+reaches in time, or at shutdown, with what came); a child process
 (:class:`~vbrl_ros.detection.verifier_process.VerifierProcess`) verifies its
 candidates meanwhile, and the verification thread publishes what passes. No
 hand-over grows: a keyframe pushed out of the worker's queue (5 long) is
@@ -40,7 +42,7 @@ from visualization_msgs.msg import MarkerArray
 
 from vbrl_ros.detection.candidate_verification import KeyframeResult, Retrieval, verify_candidates
 from vbrl_ros.detection.database import KeyframeDatabase
-from vbrl_ros.detection.detector import LoopClosureDetector
+from vbrl_ros.detection.detector import Keyframe, LoopClosureDetector, submap_gap_s
 from vbrl_ros.detection.settings import SettingsError
 from vbrl_ros.detection.verifier_process import VerifierError, VerifierProcess
 from vbrl_ros.grids.ground_frame import gravity_rotation
@@ -67,6 +69,9 @@ TOPIC_PARAMETERS = ("cloud_topic", "odom_topic", "loop_closure_topic", "lio_sam_
 #: Keyframes waiting for the worker before the oldest is dropped: half a second at 10 keyframes/s,
 #: what a save of ~800 keyframes (~55 MB) holds the worker for; more would only add latency.
 KEYFRAME_QUEUE = 5
+#: Retrievals waiting for verification before the oldest is left unverified: the keyframes of one
+#: place that come due together when the sensor stops (features.trail_ahead_m), no more.
+RETRIEVAL_QUEUE = 4
 #: Sensor-data QoS (best effort), with a queue of a second of a 10 Hz sensor instead of 5 messages:
 #: a cloud waiting there costs memory only until the callback takes it, a cloud pushed out is lost.
 #: How long a keyframe waits for odometry to reach its stamp (a LiDAR odometry publishes a scan's
@@ -110,7 +115,7 @@ class VbrlNode(Node):
         # (points, stamp, pose, arrival) for the worker; (retrieval, arrival) for verification
         self._keyframes: NewestQueue[tuple[np.ndarray, float, np.ndarray | None, float]] = \
             NewestQueue(KEYFRAME_QUEUE)
-        self._retrievals: NewestQueue[tuple[Retrieval, float]] = NewestQueue(1)
+        self._retrievals: NewestQueue[tuple[Retrieval, float]] = NewestQueue(RETRIEVAL_QUEUE)
         self._verifier = VerifierProcess(self.detector.settings) if s.detector.verify else None
         self._spacing = KeyframeSpacing(s.keyframe_distance, s.keyframe_interval)
         self._pose_history = PoseHistory()
@@ -283,25 +288,56 @@ class VbrlNode(Node):
     # -- worker thread: describe, search, store ----------------------------------
 
     def _work(self) -> None:
-        while (keyframe := self._keyframes.take()) is not None:
+        # a keyframe waiting for the metres after it goes once no keyframe came for as long as
+        # the trail ahead reaches in time (none later could join it): the robot stopped, the bag ended
+        silence = submap_gap_s(self.detector.settings)
+        while True:
             try:
-                self._process(*keyframe)
+                keyframe = self._keyframes.take(timeout=silence if len(self.detector.trail_ahead) else None)
+            except TimeoutError:
+                self._process_due(self.detector.keyframes_waiting())
+                continue
+            if keyframe is None:
+                break
+            try:
+                self._process_due(self._due(*keyframe), arrived=keyframe[-1])
             except Exception as error:  # never let one scan kill the node
                 self.stats.count("errors")
                 self.get_logger().error(f"keyframe skipped after an unexpected error: {error!r}")
+        # stopping: the waiting keyframes are stored (and saved), too late to publish their closures
+        self._process_due(self.detector.keyframes_waiting(), publish=False)
 
-    def _process(self, points: np.ndarray, stamp: float, pose: np.ndarray | None, arrived: float) -> None:
+    def _due(self, points: np.ndarray, stamp: float, pose: np.ndarray | None, arrived: float) -> list[Keyframe]:
         if pose is not None:  # odometry runs: the pose at the cloud's own stamp, not the newest
             pose, covered = self._pose_history.at(stamp, ODOMETRY_WAIT_S)
             if not covered:
                 self.stats.count("late_odometry")
+        gravity = gravity_rotation(pose) if self.settings.level_from_odometry and pose is not None else None
+        # the keyframes waiting are the worker's alone: no lock
+        return self.detector.keyframes_due(points, stamp, pose, gravity, tag=arrived)
+
+    def _process_due(self, keyframes: list[Keyframe], publish: bool = True, arrived: float | None = None) -> None:
+        """Describe, search and store ``keyframes``; ``arrived``: when the one just taken came."""
+        due = time.monotonic()
+        for keyframe in keyframes:
+            # its retrieval latency counts from when it was due, not from the metres it waited for;
+            # when its closures are decided counts from when it came
+            start = keyframe.tag if keyframe.tag == arrived else due
+            try:
+                self._process(keyframe, start, publish)
+            except Exception as error:  # never let one keyframe cost the others
+                self.stats.count("errors")
+                self.get_logger().error(f"keyframe skipped after an unexpected error: {error!r}")
+
+    def _process(self, keyframe: Keyframe, start: float, publish: bool) -> None:
+        arrived = keyframe.tag
         with self._db_lock:
-            gravity = (gravity_rotation(pose) if self.settings.level_from_odometry and pose is not None
-                       else None)
-            retrieval = self.detector.retrieve(points, stamp, pose, gravity)
+            retrieval = self.detector.retrieve_keyframe(keyframe)
             self._keyframes_since_save += 1
             save_due = bool(self.settings.save_every) and self._keyframes_since_save >= self.settings.save_every
-        self.stats.keyframe(1e3 * (time.monotonic() - arrived))
+        self.stats.keyframe(1e3 * (time.monotonic() - start))
+        if not publish:
+            return
         if self._verifier is not None and retrieval.candidates:
             # verified in the other process while this thread takes the next keyframe
             if self._retrievals.put((retrieval, arrived)):
@@ -371,11 +407,11 @@ class VbrlNode(Node):
 
     def _publish_status(self) -> None:
         with self._db_lock:  # copies: the markers are built without holding up the worker
-            size = len(self.database)
+            size, waiting = len(self.database), len(self.detector.trail_ahead)
             poses, ids = self.database.poses, self.database.keyframe_ids
             edges = np.array(self._edges, dtype=np.int64).reshape(-1, 2)
         markers = keyframe_markers(poses, ids, edges, self.settings.map_frame, self.get_clock().now().to_msg())
-        status = diagnostics_status(self.stats.snapshot(), size, self.session)
+        status = diagnostics_status(self.stats.snapshot(), size, self.session, waiting)
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status = [status]
@@ -384,11 +420,11 @@ class VbrlNode(Node):
             self.marker_pub.publish(markers)
 
     def shutdown(self) -> bool:
-        """Stop the worker and verification (finishing the keyframe in hand) and save the database;
-        False if that failed."""
+        """Stop the worker and verification (finishing the keyframe in hand, storing those waiting
+        for the metres after them) and save the database; False if that failed."""
         self._keyframes.close()
-        self._retrievals.close()
         self._worker.join(timeout=30.0)
+        self._retrievals.close()
         self._verification.join(timeout=30.0)
         if self._verifier is not None:
             self._verifier.stop()

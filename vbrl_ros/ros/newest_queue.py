@@ -36,11 +36,12 @@ class NewestQueue(Generic[T]):
             self._condition.notify()
             return dropped
 
-    def take(self) -> T | None:
-        """The oldest waiting item (blocks until there is one); None once closed, even if some wait."""
+    def take(self, timeout: float | None = None) -> T | None:
+        """The oldest waiting item (blocks until there is one); None once closed, even if some wait.
+        Raises TimeoutError when ``timeout`` seconds (None: no limit) pass without one."""
         with self._condition:
-            while not self._items and not self._closed:
-                self._condition.wait()
+            if not self._condition.wait_for(lambda: self._items or self._closed, timeout):
+                raise TimeoutError(f"nothing came within {timeout:g} s")
             if self._closed:
                 return None
             return self._items.popleft()

@@ -190,13 +190,15 @@ BUSY_COUNTERS = ("keyframes_processed", "loop_closures", "rejected_by_verificati
 
 
 def _wait_until_idle(collector, timeout: float = 120.0, on_spin=lambda: None) -> dict[str, str]:
-    """Diagnostics once the node's keyframe and verification counts stop moving."""
+    """Diagnostics once the node's keyframe and verification counts stop moving and no keyframe
+    waits for the sensor to pass it."""
     previous, deadline = None, time.monotonic() + timeout
     while time.monotonic() < deadline:
         collector.spin_until(lambda: on_spin() or False, 1.2)  # drain: > 2 diagnostics periods
         last = collector.messages["/diagnostics"][-1].status[0]
         current = {kv.key: kv.value for kv in last.values}
-        if previous is not None and all(current.get(k) == previous.get(k) for k in BUSY_COUNTERS):
+        if (previous is not None and all(current.get(k) == previous.get(k) for k in BUSY_COUNTERS)
+                and current.get("keyframes_waiting", "0") == "0"):
             return current
         previous = current
     raise RuntimeError("vbrl_node never went idle")

@@ -11,7 +11,8 @@ from visualization_msgs.msg import Marker, MarkerArray
 from vbrl_ros.ros.node_stats import StatsSnapshot
 
 
-def diagnostics_status(stats: StatsSnapshot, database_size: int, session: int) -> DiagnosticStatus:
+def diagnostics_status(stats: StatsSnapshot, database_size: int, session: int,
+                       keyframes_waiting: int = 0) -> DiagnosticStatus:
     p50, p90, p99 = stats.latency_ms
     r50, r90, r99 = stats.retrieval_latency_ms
     values = {
@@ -20,6 +21,7 @@ def diagnostics_status(stats: StatsSnapshot, database_size: int, session: int) -
         "scans_lost": stats.lost,
         "scans_between_keyframes": stats.between_keyframes,
         "keyframes_processed": stats.keyframes,
+        "keyframes_waiting": keyframes_waiting,
         "loop_closures": stats.closures,
         "corroborated_closures": stats.corroborated,
         "closures_to_nearer_keyframe": stats.handed_on,
