@@ -151,7 +151,7 @@ def test_the_detector_describes_keyframes_with_their_trail_as_the_evaluation_doe
                                run.poses[:count], run.stamps[:count])
     builtin = load_default_model()
     model = replace(builtin, config=replace(builtin.config, features=replace(builtin.config.features,
-                                                                              trail_m=3.0)))
+                                                                              trail_m=3.0, trail_ahead_m=0.0)))
     source = describe_source(folder, model.config, ScanContextConfig(), workers=1, progress=False)
     with_odometry, without = detector(model), detector(model)
     poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)  # as written, to the digit
@@ -165,6 +165,51 @@ def test_the_detector_describes_keyframes_with_their_trail_as_the_evaluation_doe
     np.testing.assert_allclose(stored, expected, atol=1e-5)
     np.testing.assert_array_equal(stored[0], alone[0])  # the first keyframe has no trail yet
     assert all(np.abs(stored[k] - alone[k]).max() > 1e-3 for k in range(1, count))
+
+
+def test_a_keyframe_waits_for_the_metres_after_it_and_is_described_as_the_evaluation_does(tmp_path):
+    """With ``trail_ahead_m`` a keyframe is described once odometry has carried the sensor that far
+    past it, with the keyframes of those metres merged in too, exactly as ``vbrl eval`` and training
+    describe it; the rest, when the input stops, with what came."""
+    import pytest
+
+    from vbrl_ros.datasets.kitti_style import write_kitti_style
+    from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
+    from vbrl_ros.evaluation.methods import describe_source
+
+    sim = pytest.importorskip("vbrl_ros.simulator")
+    town = sim.generate_town(sim.TownConfig(blocks_x=2, blocks_y=2), seed=3)
+    run = sim.simulate_run(town, sim.make_route(town, sim.RouteConfig(loops=1, spacing_m=1.0)),
+                           sim.LidarConfig(beams=16, columns=512), "summer_clear", seed=1)
+    count = 8
+    folder = write_kitti_style(tmp_path / "run", [run.scan(k).points for k in range(count)],
+                               run.poses[:count], run.stamps[:count])
+    builtin = load_default_model()
+    model = replace(builtin, config=replace(builtin.config, features=replace(
+        builtin.config.features, trail_m=3.0, trail_ahead_m=2.5)))
+    source = describe_source(folder, model.config, ScanContextConfig(), workers=1, progress=False)
+    node, at_once = detector(model), detector(model)
+    poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
+    due = []
+    for k in range(count):
+        points = np.fromfile(folder / "velodyne" / f"{k:06d}.bin", np.float32).reshape(-1, 4)
+        pose = np.vstack([poses[k], [0, 0, 0, 1]])
+        now = node.keyframes_due(points, float(run.stamps[k]), pose, tag=k)
+        due.append([keyframe.tag for keyframe in now])
+        for keyframe in now:
+            node.retrieve_keyframe(keyframe)
+        at_once.process_keyframe(points, float(run.stamps[k]), pose=pose)
+    assert due[:4] == [[], [], [], [0]] and sum(due, []) == list(range(count - 3))  # 1 m apart: 3 m on
+    assert len(node.trail_ahead) == 3
+    for keyframe in node.keyframes_waiting():
+        node.retrieve_keyframe(keyframe)
+    assert len(node.trail_ahead) == 0 and len(node.database) == count
+    stored = np.stack([node.database.descriptor(k) for k in range(count)])
+    np.testing.assert_allclose(stored, model.scorer().compact(model.standardize(source.vbrl)), atol=1e-5)
+    # process_keyframe describes a keyframe when it comes: without the metres after it
+    alone = np.stack([at_once.database.descriptor(k) for k in range(count)])
+    assert all(np.abs(stored[k] - alone[k]).max() > 1e-3 for k in range(count - 1))
+    np.testing.assert_array_equal(stored[-1], alone[-1])  # nothing came after the last
 
 
 def test_a_forward_looking_keyframe_is_described_with_its_forward_trail_as_the_evaluation_does(tmp_path):
@@ -214,7 +259,8 @@ def test_with_odometry_earlier_keyframes_are_matched_by_place():
     """The node hands the database its odometry position: the sequence terms are then the places'
     (index.sequence_matching), so they differ from matching by id once earlier keyframes exist."""
     builtin = load_default_model()  # without a trail: the keyframes are described alike either way
-    model = replace(builtin, config=replace(builtin.config, features=replace(builtin.config.features, trail_m=0.0)))
+    model = replace(builtin, config=replace(builtin.config, features=replace(builtin.config.features, trail_m=0.0,
+                                                                              trail_ahead_m=0.0)))
     rng = np.random.default_rng(4)
     clouds = [rng.uniform(-30, 30, (20_000, 3)).astype(np.float32) for _ in range(7)]
     for cloud in clouds:
@@ -261,8 +307,12 @@ def test_a_keyframe_whose_wedge_its_trail_fills_is_stored_all_round_as_the_evalu
     poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
     for k in range(count):
         points = np.fromfile(folder / "velodyne" / f"{k:06d}.bin", np.float32).reshape(-1, 4)
-        for detector_ in (node, hidden_only):
-            detector_.process_keyframe(points, stamps[k], pose=np.vstack([poses[k], [0, 0, 0, 1]]))
+        for detector_ in (node, hidden_only):  # as the node: each keyframe once the sensor has passed it
+            for keyframe in detector_.keyframes_due(points, stamps[k], np.vstack([poses[k], [0, 0, 0, 1]])):
+                detector_.retrieve_keyframe(keyframe)
+    for detector_ in (node, hidden_only):
+        for keyframe in detector_.keyframes_waiting():
+            detector_.retrieve_keyframe(keyframe)
     assert len(hidden_only.database.all_round) == 0  # the node's fill_blind_wedges off
     np.testing.assert_array_equal(hidden_only.database.index.descriptors(), node.database.index.descriptors())
     assert source.has_all_round is not None and source.has_all_round.sum() >= count // 2
