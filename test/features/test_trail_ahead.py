@@ -126,11 +126,14 @@ def test_a_keyframe_that_does_not_see_all_round_does_not_wait_but_keeps_its_turn
 
 def test_a_standing_sensor_releases_once_those_after_it_fill_its_cloud():
     scans, poses, _ = drive(count=1)
-    ahead = TrailAhead(2.0)
-    fill = -(-(TRAIL_POINTS - len(scans[0])) // len(scans[0]))  # keyframes after it that fill its cloud
-    assert all(ahead.add(k, scans[0], poses[0]) == [] for k in range(fill))
-    (item, parts), = ahead.add(fill, scans[0], poses[0])
-    assert item == 0 and len(parts) == fill and len(scans[0]) + sum(map(len, parts)) <= TRAIL_POINTS
+    ahead, due, count = TrailAhead(2.0), [], 0
+    while not due:
+        due = ahead.add(count, scans[0], poses[0])
+        count += 1
+    (item, parts), = due
+    # the keyframe that filled it came last: nothing after it could have added a point
+    assert item == 0 and len(parts) == count - 1 and len(scans[0]) + sum(map(len, parts)) == TRAIL_POINTS
+    assert len(scans[0]) + sum(map(len, parts[:-1])) < TRAIL_POINTS
     # as many keyframes as a trail holds release the oldest whatever their points
     angle = np.linspace(-np.pi, np.pi, 200, endpoint=False)
     ahead, few = TrailAhead(2.0), np.column_stack([10 * np.cos(angle), 10 * np.sin(angle), np.ones(200)])

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
@@ -99,29 +100,39 @@ class TrailAhead(Generic[T]):
 
     def _passed(self, keyframe: _Waiting[T], newest: _Waiting[T]) -> bool:
         """Whether no keyframe after ``newest`` can join ``keyframe``'s trail ahead: it is out of
-        reach or too late, or those before it fill the cloud already (a standing sensor)."""
+        reach or too late, or those before it fill the cloud already (a slow sensor)."""
         return (not keyframe.waits
                 or newest.travelled - keyframe.travelled > self.ahead_m
                 or newest.stamp - keyframe.stamp >= self.max_age
                 or len(self._waiting) > MAX_TRAIL_KEYFRAMES
-                or sum(len(later.points) for later in self._waiting) >= TRAIL_POINTS)
+                or sum(len(later.points[::step]) for later, step in self._taken(keyframe))
+                + len(keyframe.points) >= TRAIL_POINTS)
+
+    def _taken(self, keyframe: _Waiting[T]) -> Iterator[tuple[_Waiting[T], int]]:
+        """The keyframes after ``keyframe`` that its trail ahead takes, nearest first, each with the
+        step its points are taken by: all of them, but the last only tops the cloud up to
+        ``TRAIL_POINTS``, as the trail does."""
+        total, taken = len(keyframe.points), 0
+        for later in self._waiting:
+            room = TRAIL_POINTS - total
+            if room <= 0 or taken == MAX_TRAIL_KEYFRAMES:
+                return
+            # "within reach" of the later one looking back: the trail's own test, turned round
+            if later is keyframe or not within_reach(keyframe, later.travelled, later.pose, later.stamp,
+                                                     self.ahead_m, self.max_age):
+                continue
+            step = max(1, -(-len(later.points) // room))  # an empty one: step 1
+            yield later, step
+            total += len(later.points[::step])
+            taken += 1
 
     def _release(self) -> tuple[T, list[np.ndarray]]:
         keyframe = self._waiting.popleft()
         if not keyframe.waits:
             return keyframe.item, []
         to_keyframe = np.linalg.inv(keyframe.pose)
-        parts, total = [], len(keyframe.points)
-        for later in self._waiting:  # nearest first
-            room = TRAIL_POINTS - total
-            if room <= 0 or len(parts) == MAX_TRAIL_KEYFRAMES:
-                break
-            # "within reach" of the later one looking back: the trail's own test, turned round
-            if not within_reach(keyframe, later.travelled, later.pose, later.stamp, self.ahead_m, self.max_age):
-                continue
-            # the last one only tops the cloud up, as the trail does
-            points = later.points[::max(1, -(-len(later.points) // room))]
+        parts = []
+        for later, step in self._taken(keyframe):
             to_here = to_keyframe @ later.pose
-            parts.append((points @ to_here[:3, :3].T + to_here[:3, 3]).astype(np.float32))
-            total += len(points)
+            parts.append((later.points[::step] @ to_here[:3, :3].T + to_here[:3, 3]).astype(np.float32))
         return keyframe.item, parts
