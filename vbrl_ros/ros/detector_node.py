@@ -26,12 +26,10 @@ import threading
 import time
 from collections import deque
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from rclpy.serialization import deserialize_message
@@ -41,31 +39,20 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from vbrl_ros.detection.candidate_verification import KeyframeResult, Retrieval, verify_candidates
-from vbrl_ros.detection.database import KeyframeDatabase
 from vbrl_ros.detection.detector import Keyframe, LoopClosureDetector, submap_gap_s
-from vbrl_ros.detection.settings import SettingsError
 from vbrl_ros.detection.verifier_process import VerifierError, VerifierProcess
 from vbrl_ros.grids.ground_frame import gravity_rotation
-from vbrl_ros.io.atomic import check_writable, remove_stale_temporaries
 from vbrl_ros.io.pointcloud2 import PointCloud2Error, read_xyz_intensity
 from vbrl_ros.model.builtin import load_default_model
 from vbrl_ros.model.model_file import load_model
 from vbrl_ros.ros.cloud_intake import SequenceGaps, cloud_header
 from vbrl_ros.ros.messages import closures_message, lio_sam_message
 from vbrl_ros.ros.newest_queue import NewestQueue
+from vbrl_ros.ros.node_setup import check_database_path, check_topics, open_database, read_settings
 from vbrl_ros.ros.node_stats import NodeStats
 from vbrl_ros.ros.odometry import KeyframeSpacing, OdometryError, PoseHistory, mounting_matrix, pose_matrix
 from vbrl_ros.ros.outputs import diagnostics_status, keyframe_markers
-from vbrl_ros.ros.settings import (
-    DESCRIPTIONS,
-    NodeSettings,
-    index_parameters,
-    unknown_parameters,
-)
-from vbrl_ros.ros.startup import rcl_error_line
 
-#: The parameters that name a topic (odom_topic may be empty: no odometry).
-TOPIC_PARAMETERS = ("cloud_topic", "odom_topic", "loop_closure_topic", "lio_sam_topic", "markers_topic")
 #: Keyframes waiting for the worker before the oldest is dropped: half a second at 10 keyframes/s,
 #: what a save of ~800 keyframes (~55 MB) holds the worker for; more would only add latency.
 KEYFRAME_QUEUE = 5
@@ -89,12 +76,12 @@ def stamp_seconds(stamp) -> float:
 class VbrlNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("vbrl_node", **kwargs)
-        self.settings = self._read_settings()
+        self.settings = read_settings(self)
         s = self.settings
-        self._check_topics()
-        self._check_database_path()
+        check_topics(self, s)
+        check_database_path(s)
         self.model = load_model(s.model_path) if s.model_path else load_default_model()
-        self.database = self._open_database()
+        self.database = open_database(self.model, s, self.get_logger().info)
         session = s.session_id if s.session_id >= 0 else self.database.next_session()
         if s.session_id >= 0 and str(session) in self.database.sessions:
             # one session is one odometry frame: the gate and matching by place compare its positions
@@ -150,73 +137,6 @@ class VbrlNode(Node):
             f"listening on {s.cloud_topic}; session {session}; {len(self.database)} keyframes in "
             f"memory; distance threshold {self.detector.distance_threshold:.3f} (lower = more similar)"
         )
-
-    # -- start-up ------------------------------------------------------------
-
-    def _read_settings(self) -> NodeSettings:
-        values = {}
-        for name, default in NodeSettings.defaults().items():
-            # dynamic typing: a wrongly typed value reaches our validation,
-            # which names the parameter, instead of an rclpy type exception
-            descriptor = ParameterDescriptor(description=DESCRIPTIONS[name], dynamic_typing=True)
-            self.declare_parameter(name, default, descriptor)
-            values[name] = self.get_parameter(name).value
-        self._refuse_unknown_overrides()
-        return NodeSettings.from_values(values)
-
-    def _refuse_unknown_overrides(self) -> None:
-        """Stop on a -p or parameter-file name that no one declared.
-
-        rclpy drops such overrides silently, so a misspelled ``cloud_topics``
-        would leave a robot running on the default topic with nothing said.
-        What rclpy declares itself (use_sim_time, ...) counts as known. The
-        overrides are rclpy's protected ``Node._parameter_overrides``: it has
-        no public way to list them without declaring them all.
-        """
-        unknown = [name for name in self._parameter_overrides if not self.has_parameter(name)]
-        if unknown:
-            raise SettingsError(unknown_parameters(sorted(unknown)))
-
-    def _check_topics(self) -> None:
-        """Stop on a topic name rclpy would refuse (its exception names neither the parameter
-        nor, in one line, the problem)."""
-        for name in TOPIC_PARAMETERS:
-            topic = getattr(self.settings, name)
-            if name == "odom_topic" and not topic:
-                continue
-            try:
-                self.resolve_topic_name(topic)
-            except RuntimeError as error:  # rcl's RCLError
-                reason = rcl_error_line(error).removeprefix("failed to resolve name: ")
-                raise SettingsError(f"parameter '{name}' is not a valid topic name: {topic!r} ({reason})") from None
-
-    def _check_database_path(self) -> None:
-        """Stop now if the database cannot be saved, not with every save failing later."""
-        path = self.settings.database_path
-        if path:
-            try:
-                check_writable(path)
-            except OSError as error:
-                raise SettingsError(f"parameter 'database_path': cannot write {path} "
-                                    f"({error.strerror}: {error.filename})") from None
-
-    def _open_database(self) -> KeyframeDatabase:
-        scorer = self.model.scorer(prune=self.settings.weight_prune)
-        model_id = self.model.identity()
-        path = self.settings.database_path
-        if path:
-            removed = remove_stale_temporaries(path)
-            if removed:
-                self.get_logger().info(f"removed {len(removed)} temporary file(s) that interrupted saves of "
-                                       f"{path} left")
-        if path and Path(path).exists():
-            # a saved database keeps its own storage type and search (and refuses another prune)
-            return KeyframeDatabase.load(path, scorer, model_id)
-        try:
-            return KeyframeDatabase(scorer, model_id, index_parameters(self.settings))
-        except ValueError as error:  # a bound that depends on the model's descriptor
-            name = str(error).split()[0]
-            raise SettingsError(f"parameter 'index_{name}' for this model: {error}") from None
 
     # -- callbacks (executor thread): cheap ------------------------------------
 
@@ -295,7 +215,7 @@ class VbrlNode(Node):
             try:
                 keyframe = self._keyframes.take(timeout=silence if len(self.detector.trail_ahead) else None)
             except TimeoutError:
-                self._process_due(self.detector.keyframes_waiting())
+                self._process_waiting()
                 continue
             if keyframe is None:
                 break
@@ -305,7 +225,16 @@ class VbrlNode(Node):
                 self.stats.count("errors")
                 self.get_logger().error(f"keyframe skipped after an unexpected error: {error!r}")
         # stopping: the waiting keyframes are stored (and saved), too late to publish their closures
-        self._process_due(self.detector.keyframes_waiting(), publish=False)
+        self._process_waiting(publish=False)
+
+    def _process_waiting(self, publish: bool = True) -> None:
+        try:
+            keyframes = self.detector.keyframes_waiting()
+        except Exception as error:  # the worker goes on: the next keyframe starts the wait anew
+            self.stats.count("errors")
+            self.get_logger().error(f"waiting keyframes skipped after an unexpected error: {error!r}")
+            return
+        self._process_due(keyframes, publish)
 
     def _due(self, points: np.ndarray, stamp: float, pose: np.ndarray | None, arrived: float) -> list[Keyframe]:
         if pose is not None:  # odometry runs: the pose at the cloud's own stamp, not the newest
