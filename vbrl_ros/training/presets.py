@@ -22,7 +22,7 @@ RECOGNITION_GRID = dict(kind="polar", rings=20, sectors=30, max_range=40.0, z_ed
 RECOGNITION_FEATURES = FeatureConfig(modalities=("height", "spectrum"), min_points=1, normalise=True,
                                      mirror_blind_wedges=True, mirror_field_of_view=True,
                                      drop_weather_clutter=True, trail_m=3.0,
-                                     forward_trail_m=60.0, fill_blind_wedges=True)
+                                     forward_trail_m=60.0, fill_blind_wedges=True, trail_ahead_m=3.0)
 RECOGNITION_TRANSLATION_SEARCH_M = 1.5
 
 
