@@ -188,9 +188,9 @@ def test_a_keyframe_waits_for_the_metres_after_it_and_is_described_as_the_evalua
     model = replace(builtin, config=replace(builtin.config, features=replace(
         builtin.config.features, trail_m=3.0, trail_ahead_m=2.5)))
     source = describe_source(folder, model.config, ScanContextConfig(), workers=1, progress=False)
-    node, at_once = detector(model), detector(model)
+    node, at_once, reused = detector(model), detector(model), detector(model)
     poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
-    due = []
+    due, buffer = [], np.eye(4)
     for k in range(count):
         points = np.fromfile(folder / "velodyne" / f"{k:06d}.bin", np.float32).reshape(-1, 4)
         pose = np.vstack([poses[k], [0, 0, 0, 1]])
@@ -199,11 +199,17 @@ def test_a_keyframe_waits_for_the_metres_after_it_and_is_described_as_the_evalua
         for keyframe in now:
             node.retrieve_keyframe(keyframe)
         at_once.process_keyframe(points, float(run.stamps[k]), pose=pose)
+        buffer[:] = pose  # a caller that moves one pose array along, and reuses its points' buffer
+        for keyframe in reused.keyframes_due(points, float(run.stamps[k]), buffer):
+            reused.retrieve_keyframe(keyframe)
+        points[:] = np.nan
     assert due[:4] == [[], [], [], [0]] and sum(due, []) == list(range(count - 3))  # 1 m apart: 3 m on
     assert len(node.trail_ahead) == 3
-    for keyframe in node.keyframes_waiting():
-        node.retrieve_keyframe(keyframe)
+    for waiting in (node, reused):
+        for keyframe in waiting.keyframes_waiting():
+            waiting.retrieve_keyframe(keyframe)
     assert len(node.trail_ahead) == 0 and len(node.database) == count
+    np.testing.assert_array_equal(reused.database.index.descriptors(), node.database.index.descriptors())
     stored = np.stack([node.database.descriptor(k) for k in range(count)])
     np.testing.assert_allclose(stored, model.scorer().compact(model.standardize(source.vbrl)), atol=1e-5)
     # process_keyframe describes a keyframe when it comes: without the metres after it

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from vbrl_ros.features.session_trails import trail_clouds
-from vbrl_ros.features.trail import MAX_TRAIL_KEYFRAMES, TRAIL_POINTS
+from vbrl_ros.features.trail import MAX_TRAIL_KEYFRAMES, TRAIL_POINTS, Trail
 from vbrl_ros.features.trail_ahead import TrailAhead
 
 
@@ -147,3 +147,26 @@ def test_bad_reaches_are_refused():
             TrailAhead(bad)
     with pytest.raises(ValueError, match="max_age"):
         TrailAhead(1.0, max_age=math.nan)
+
+
+def test_a_caller_that_moves_one_pose_array_along_gets_what_fresh_poses_give():
+    """A driver loop that updates one 4x4 in place: the trails keep copies, not its buffer."""
+    scans, poses, _ = drive()
+    clouds = []
+    for moves_its_buffer in (False, True):
+        trail, ahead, out = Trail(2.0, 60.0), TrailAhead(2.0), []
+        buffers = np.eye(4), np.eye(4)
+
+        def pose_of(j: int, buffer: np.ndarray) -> np.ndarray:
+            if not moves_its_buffer:
+                return poses[j].copy()
+            buffer[:] = poses[j]
+            return buffer
+
+        for k, scan in enumerate(scans):
+            due = ahead.add(k, scan, pose_of(k, buffers[0]))
+            out += [trail.cloud(scans[j], pose_of(j, buffers[1]), ahead=later) for j, later in due]
+        out += [trail.cloud(scans[j], pose_of(j, buffers[1]), ahead=later) for j, later in ahead.flush()]
+        clouds.append(out)
+    assert len(clouds[0]) == len(scans)
+    assert all(np.array_equal(a, b) for a, b in zip(*clouds))

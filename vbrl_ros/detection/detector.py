@@ -202,6 +202,9 @@ class LoopClosureDetector:
         the keyframes now due to be described, oldest first: with the model's
         ``features.trail_ahead_m`` one with a trail waits until odometry has carried the sensor
         that far past it (:class:`~vbrl_ros.features.trail_ahead.TrailAhead`), else it is due at once."""
+        if self.trail_ahead.ahead_m > 0:  # it may wait: copies, the caller may reuse its buffers
+            points = np.array(points)
+            pose, gravity = (None if m is None else np.array(m, np.float64) for m in (pose, gravity))
         item = Keyframe(points, stamp, pose, gravity, [], tag)
         return [keyframe._replace(ahead=ahead) for keyframe, ahead in
                 self.trail_ahead.add(item, points, pose, self.settings.session, stamp)]

@@ -142,7 +142,7 @@ class Trail:
                 return TrailClouds(points, None)
         if dense_fill:
             self._earlier.clear()
-        pose = np.asarray(pose, np.float64)
+        pose = np.array(pose, np.float64)  # kept: a copy, the caller may move its own along
         if self._last_position is not None:
             self._travelled += float(np.linalg.norm(pose[:3, 3] - self._last_position))
         self._last_position = pose[:3, 3].copy()

@@ -78,7 +78,7 @@ class TrailAhead(Generic[T]):
             self._session = session
         if not chained:
             return [*due, (item, [])]
-        pose = np.asarray(pose, np.float64)
+        pose = np.array(pose, np.float64)  # kept: a copy, the caller may move its own along
         xyz = np.array(np.asarray(points)[:, :3], dtype=np.float32)  # the caller may reuse its buffer
         travelled = 0.0
         if self._waiting:
