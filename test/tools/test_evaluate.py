@@ -236,6 +236,12 @@ def test_a_trail_changes_what_vbrl_describes_and_is_reported(trained, tmp_path, 
                 "--exclude", "20", "--no-ablations", "--no-scan-context", "--quiet", "--workers", "1") == 0
     assert _read(out)["trail_ahead_m"] == 12.0
     assert [row["distance"] for row in _read(own)] == pytest.approx([row["distance"] for row in _read(ahead)])
+    # --trail 0 on such a model: no trail behind, so none ahead either (not a refused configuration)
+    assert vbrl(monkeypatch, "eval", summer, "--model", both_ways, "--json", out, "--dump-matches", own,
+                "--exclude", "20", "--no-ablations", "--no-scan-context", "--quiet", "--workers", "1",
+                "--trail", "0") == 0
+    assert (_read(out)["trail_m"], _read(out)["trail_ahead_m"]) == (0.0, 0.0)
+    assert [row["distance"] for row in _read(own)] == pytest.approx([row["distance"] for row in _read(dumps[None])])
     assert _read(tmp_path / "tNone.json")["trail_ahead_m"] == 0.0
     assert vbrl(monkeypatch, "eval", summer, "--model", model, "--trail-ahead", "nan", "--quiet") == 2
     assert capsys.readouterr().err.strip().endswith("--trail-ahead must be a number of metres in [0, 20]")

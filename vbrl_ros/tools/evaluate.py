@@ -155,18 +155,18 @@ def load(args: argparse.Namespace) -> Evaluation:
     models, notes = load_models(args.model or DEFAULT_MODEL_PATH, args.ablations)
     full = models[FULL_NAME]
     config = full.config
-    if args.trail is not None:  # describing only: every variant keeps its weights
-        config = replace(config, features=replace(config.features, trail_m=float(args.trail)))
+    # describing only: every variant keeps its weights. Set together: a model's trail ahead needs
+    # a trail behind, and none behind takes none ahead
+    trail = config.features.trail_m if args.trail is None else float(args.trail)
+    ahead = config.features.trail_ahead_m if args.trail_ahead is None else float(args.trail_ahead)
+    config = replace(config, features=replace(config.features, trail_m=trail,
+                                              trail_ahead_m=ahead if trail > 0 else 0.0))
     if args.forward_trail is not None:
         config = replace(config, features=replace(config.features, forward_trail_m=float(args.forward_trail),
                                                   fill_blind_wedges=config.features.fill_blind_wedges
                                                   and args.forward_trail > 0))  # fills from the forward trail
     if args.fill_blind_wedges is not None:
         config = replace(config, features=replace(config.features, fill_blind_wedges=args.fill_blind_wedges))
-    ahead = config.features.trail_ahead_m if args.trail_ahead is None else float(args.trail_ahead)
-    # no trail behind, none ahead
-    config = replace(config, features=replace(config.features,
-                                              trail_ahead_m=ahead if config.features.trail_m > 0 else 0.0))
     notes += in_sample_warnings(full, [args.query, args.against])
     notes += evaluate_mounting.notes(args)
     sc_config = evaluate_scan_context.config(args)
