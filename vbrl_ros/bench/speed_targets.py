@@ -119,7 +119,7 @@ def sparse_keyframes_with_trail(featurizer: Featurizer, scan: np.ndarray, offset
     calls the trails hold their usual keyframes."""
     features = featurizer.config.features
     trail = Trail(features.trail_m, features.forward_trail_m)
-    ahead = TrailAhead(features.trail_ahead_m if features.trail_m > 0 else 0.0)
+    ahead = TrailAhead(features.trail_ahead_m)
     position = [0.0]
 
     def next_keyframe() -> None:

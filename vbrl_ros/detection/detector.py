@@ -83,8 +83,7 @@ class LoopClosureDetector:
         self.trail = Trail(features.trail_m, features.forward_trail_m, max_age=submap_gap_s(settings),
                            fill_blind_wedges=features.fill_blind_wedges and settings.fill_blind_wedges)
         # keyframes waiting for the sensor to pass them, described in the order they came
-        self.trail_ahead: TrailAhead[Keyframe] = TrailAhead(
-            features.trail_ahead_m if features.trail_m > 0 else 0.0, max_age=submap_gap_s(settings))
+        self.trail_ahead: TrailAhead[Keyframe] = TrailAhead(features.trail_ahead_m, max_age=submap_gap_s(settings))
         self.scorer = database.scorer
         self.sequence = SequenceHistory(settings.sequence_length)
         self.recent = RecentRegistrations()  # what the last keyframes registered to, to corroborate with

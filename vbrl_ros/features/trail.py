@@ -196,16 +196,28 @@ class Trail:
         to_keyframe = np.linalg.inv(pose)
         parts, total = [xyz], len(xyz)
         for earlier in reversed(self._earlier):  # nearest first
-            room = TRAIL_POINTS - total
-            if room <= 0:
+            step = top_up_step(len(earlier.points), total)
+            if not step:
                 break
-            # the last one only tops the cloud up (every k-th point), so a keyframe just below
-            # TRAIL_POINTS takes a few earlier points, not a whole scan and its flakes
-            points = earlier.points[::max(1, -(-len(earlier.points) // room))]  # an empty one: step 1
-            T = to_keyframe @ earlier.pose
-            parts.append((points @ T[:3, :3].T + T[:3, 3]).astype(np.float32))
-            total += len(points)
+            parts.append(placed(earlier.points[::step], to_keyframe, earlier.pose))
+            total += len(parts[-1])
         return parts, blind
+
+
+def top_up_step(count: int, total: int) -> int:
+    """The step a trail takes a keyframe's ``count`` points by into a cloud of ``total`` points:
+    1, but the last only tops the cloud up to ``TRAIL_POINTS`` (every k-th point), so a keyframe
+    just below that count takes a few earlier points, not a whole scan and its flakes; 0: the
+    cloud is full."""
+    room = TRAIL_POINTS - total
+    return 0 if room <= 0 else max(1, -(-count // room))  # an empty one: step 1
+
+
+def placed(points: np.ndarray, to_keyframe: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Another keyframe's ``points`` (its frame; its ``pose`` T_world_lidar) in the keyframe's
+    frame (``to_keyframe``: T_lidar_world), float32."""
+    T = to_keyframe @ pose
+    return (points @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
 
 
 def filling(parts: list[np.ndarray], blind: np.ndarray, own: np.ndarray) -> list[np.ndarray]:

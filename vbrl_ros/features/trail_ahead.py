@@ -29,7 +29,7 @@ import numpy as np
 
 from vbrl_ros.features.blind_wedges import empty_bins, sees_around
 from vbrl_ros.features.forward_trail import within_reach
-from vbrl_ros.features.trail import MAX_TRAIL_KEYFRAMES, TRAIL_POINTS
+from vbrl_ros.features.trail import MAX_TRAIL_KEYFRAMES, TRAIL_POINTS, placed, top_up_step
 
 T = TypeVar("T")
 
@@ -114,14 +114,13 @@ class TrailAhead(Generic[T]):
         ``TRAIL_POINTS``, as the trail does."""
         total, taken = len(keyframe.points), 0
         for later in self._waiting:
-            room = TRAIL_POINTS - total
-            if room <= 0 or taken == MAX_TRAIL_KEYFRAMES:
+            step = top_up_step(len(later.points), total)
+            if not step or taken == MAX_TRAIL_KEYFRAMES:
                 return
             # "within reach" of the later one looking back: the trail's own test, turned round
             if later is keyframe or not within_reach(keyframe, later.travelled, later.pose, later.stamp,
                                                      self.ahead_m, self.max_age):
                 continue
-            step = max(1, -(-len(later.points) // room))  # an empty one: step 1
             yield later, step
             total += len(later.points[::step])
             taken += 1
@@ -131,8 +130,5 @@ class TrailAhead(Generic[T]):
         if not keyframe.waits:
             return keyframe.item, []
         to_keyframe = np.linalg.inv(keyframe.pose)
-        parts = []
-        for later, step in self._taken(keyframe):
-            to_here = to_keyframe @ later.pose
-            parts.append((later.points[::step] @ to_here[:3, :3].T + to_here[:3, 3]).astype(np.float32))
-        return keyframe.item, parts
+        return keyframe.item, [placed(later.points[::step], to_keyframe, later.pose)
+                               for later, step in self._taken(keyframe)]
