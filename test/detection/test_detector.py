@@ -133,22 +133,29 @@ def test_a_wider_retry_adds_what_it_accepted_after_the_closures_already_found():
 
 # -- a keyframe described with its trail -----------------------------------------------------------
 
-def test_the_detector_describes_keyframes_with_their_trail_as_the_evaluation_does(tmp_path):
-    """With odometry the node merges the last metres of keyframes into each before describing it,
-    exactly as ``vbrl eval`` (and training) do with a recording's poses; without poses, alone."""
+def sparse_walk(tmp_path, count: int):
+    """(the simulated run, a KITTI-style folder of its first ``count`` scans): a 16-beam sensor,
+    sparse enough to be described with its trail, one keyframe a metre."""
     import pytest
 
     from vbrl_ros.datasets.kitti_style import write_kitti_style
-    from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
-    from vbrl_ros.evaluation.methods import describe_source
 
     sim = pytest.importorskip("vbrl_ros.simulator")
     town = sim.generate_town(sim.TownConfig(blocks_x=2, blocks_y=2), seed=3)
     run = sim.simulate_run(town, sim.make_route(town, sim.RouteConfig(loops=1, spacing_m=1.0)),
                            sim.LidarConfig(beams=16, columns=512), "summer_clear", seed=1)
+    return run, write_kitti_style(tmp_path / "run", [run.scan(k).points for k in range(count)],
+                                  run.poses[:count], run.stamps[:count])
+
+
+def test_the_detector_describes_keyframes_with_their_trail_as_the_evaluation_does(tmp_path):
+    """With odometry the node merges the last metres of keyframes into each before describing it,
+    exactly as ``vbrl eval`` (and training) do with a recording's poses; without poses, alone."""
+    from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
+    from vbrl_ros.evaluation.methods import describe_source
+
     count = 6
-    folder = write_kitti_style(tmp_path / "run", [run.scan(k).points for k in range(count)],
-                               run.poses[:count], run.stamps[:count])
+    run, folder = sparse_walk(tmp_path, count)
     builtin = load_default_model()
     model = replace(builtin, config=replace(builtin.config, features=replace(builtin.config.features,
                                                                               trail_m=3.0, trail_ahead_m=0.0)))
@@ -171,19 +178,11 @@ def test_a_keyframe_waits_for_the_metres_after_it_and_is_described_as_the_evalua
     """With ``trail_ahead_m`` a keyframe is described once odometry has carried the sensor that far
     past it, with the keyframes of those metres merged in too, exactly as ``vbrl eval`` and training
     describe it; the rest, when the input stops, with what came."""
-    import pytest
-
-    from vbrl_ros.datasets.kitti_style import write_kitti_style
     from vbrl_ros.evaluation.baselines.scan_context import ScanContextConfig
     from vbrl_ros.evaluation.methods import describe_source
 
-    sim = pytest.importorskip("vbrl_ros.simulator")
-    town = sim.generate_town(sim.TownConfig(blocks_x=2, blocks_y=2), seed=3)
-    run = sim.simulate_run(town, sim.make_route(town, sim.RouteConfig(loops=1, spacing_m=1.0)),
-                           sim.LidarConfig(beams=16, columns=512), "summer_clear", seed=1)
     count = 8
-    folder = write_kitti_style(tmp_path / "run", [run.scan(k).points for k in range(count)],
-                               run.poses[:count], run.stamps[:count])
+    run, folder = sparse_walk(tmp_path, count)
     builtin = load_default_model()
     model = replace(builtin, config=replace(builtin.config, features=replace(
         builtin.config.features, trail_m=3.0, trail_ahead_m=2.5)))

@@ -7,7 +7,11 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -59,67 +63,74 @@ def run_node(env: dict, *params: str) -> subprocess.Popen:
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
+@dataclass
+class OdometrySession:
+    """A probe publishing clouds and odometry to a running vbrl_node; its output once it stopped."""
+
+    collector: MessageCollector
+    clouds: Any
+    odom: Any
+    output: str = ""
+    returncode: int | None = None
+
+
+@contextmanager
+def odometry_session(*params: str) -> Iterator[OdometrySession]:
+    """vbrl_node (``params`` as :func:`run_node`'s) on its own domain, up and subscribed to the
+    probe's clouds and odometry; stopped with SIGTERM on leaving."""
+    with ros_context() as context:
+        env = isolated_ros_env(context.get_domain_id())
+        probe = rclpy.create_node("probe", context=context)
+        session = OdometrySession(MessageCollector(probe, {"/diagnostics": DiagnosticArray}),
+                                  probe.create_publisher(PointCloud2, "/points", 10),
+                                  probe.create_publisher(Odometry, "/odom", 50))
+        node = run_node(env, *params)
+        try:
+            assert session.collector.wait_for({"/diagnostics": 1}, timeout=30), "node did not come up"
+            assert session.collector.spin_until(lambda: session.odom.get_subscription_count() > 0
+                                                and session.clouds.get_subscription_count() > 0, 20)
+            yield session
+        finally:
+            node.send_signal(signal.SIGTERM)
+            session.output, _ = node.communicate(timeout=60)
+            session.returncode = node.returncode
+        probe.destroy_node()
+
+
 def test_a_keyframe_is_stored_with_the_pose_at_its_stamp_even_when_odometry_comes_after_it(tmp_path):
     """As from a LiDAR odometry: each scan's pose is published just after the scan. A keyframe stored
     with the newest pose instead would sit a scan's travel behind, and submaps merged by it smear."""
     database = tmp_path / "keyframes.npz"
-    with ros_context() as context:
-        env = isolated_ros_env(context.get_domain_id())
-        probe = rclpy.create_node("probe", context=context)
-        collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
-        clouds = probe.create_publisher(PointCloud2, "/points", 10)
-        odom = probe.create_publisher(Odometry, "/odom", 50)
-        node = run_node(env, f"database_path:={database}", "save_every:=0")
-
-        try:
-            assert collector.wait_for({"/diagnostics": 1}, timeout=30), "node did not come up"
-            assert collector.spin_until(lambda: odom.get_subscription_count() > 0
-                                        and clouds.get_subscription_count() > 0, 20)
-            odom.publish(odometry(10.0, 0.0))
-            assert collector.spin_until(lambda: values(collector)["odometry_received"] >= 1, 20)
-            for k, stamp in enumerate((10.5, 12.5, 14.5)):  # odometry at 2 m/s, once a second
-                clouds.publish(cloud(stamp))
-                odom.publish(odometry(stamp + 0.5, 2.0 * (stamp + 0.5 - 10.0)))
-                assert collector.spin_until(lambda: values(collector)["keyframes_processed"] >= k + 1, 30), \
-                    values(collector)
-                odom.publish(odometry(stamp + 1.5, 2.0 * (stamp + 1.5 - 10.0)))
-            collector.spin_until(lambda: False, 1.0)
-            assert values(collector)["late_odometry"] == 0
-        finally:
-            node.send_signal(signal.SIGTERM)
-            output, _ = node.communicate(timeout=60)
-        probe.destroy_node()
-    assert node.returncode == 0, output
-    assert "odometry moves frame" not in output  # odometry of the LiDAR's own frame
+    with odometry_session(f"database_path:={database}", "save_every:=0") as session:
+        collector, clouds, odom = session.collector, session.clouds, session.odom
+        odom.publish(odometry(10.0, 0.0))
+        assert collector.spin_until(lambda: values(collector)["odometry_received"] >= 1, 20)
+        for k, stamp in enumerate((10.5, 12.5, 14.5)):  # odometry at 2 m/s, once a second
+            clouds.publish(cloud(stamp))
+            odom.publish(odometry(stamp + 0.5, 2.0 * (stamp + 0.5 - 10.0)))
+            assert collector.spin_until(lambda: values(collector)["keyframes_processed"] >= k + 1, 30), \
+                values(collector)
+            odom.publish(odometry(stamp + 1.5, 2.0 * (stamp + 1.5 - 10.0)))
+        collector.spin_until(lambda: False, 1.0)
+        assert values(collector)["late_odometry"] == 0
+    assert session.returncode == 0, session.output
+    assert "odometry moves frame" not in session.output  # odometry of the LiDAR's own frame
     # halfway between the poses around each stamp; the newest pose at arrival was 1 m behind
     np.testing.assert_allclose(stored_positions(database), [[1.0, 0, 0], [5.0, 0, 0], [9.0, 0, 0]], atol=1e-6)
 
 
 def base_link_run(*params: str) -> str:
     """Three keyframes with odometry of base_link, 2 m apart; the node's output."""
-    with ros_context() as context:
-        env = isolated_ros_env(context.get_domain_id())
-        probe = rclpy.create_node("probe", context=context)
-        collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
-        clouds = probe.create_publisher(PointCloud2, "/points", 10)
-        odom = probe.create_publisher(Odometry, "/odom", 50)
-        node = run_node(env, *params)
-        try:
-            assert collector.wait_for({"/diagnostics": 1}, timeout=30), "node did not come up"
-            assert collector.spin_until(lambda: odom.get_subscription_count() > 0
-                                        and clouds.get_subscription_count() > 0, 20)
-            for k in range(3):
-                odom.publish(odometry(10.0 + k, 2.0 * k, child_frame="base_link"))
-                assert collector.spin_until(lambda: values(collector)["odometry_received"] >= k + 1, 20)
-                clouds.publish(cloud(10.0 + k))
-                assert collector.spin_until(lambda: values(collector)["keyframes_processed"] >= k + 1, 30), \
-                    values(collector)
-        finally:
-            node.send_signal(signal.SIGTERM)
-            output, _ = node.communicate(timeout=60)
-        probe.destroy_node()
-    assert node.returncode == 0, output
-    return output
+    with odometry_session(*params) as session:
+        collector = session.collector
+        for k in range(3):
+            session.odom.publish(odometry(10.0 + k, 2.0 * k, child_frame="base_link"))
+            assert collector.spin_until(lambda: values(collector)["odometry_received"] >= k + 1, 20)
+            session.clouds.publish(cloud(10.0 + k))
+            assert collector.spin_until(lambda: values(collector)["keyframes_processed"] >= k + 1, 30), \
+                values(collector)
+    assert session.returncode == 0, session.output
+    return session.output
 
 
 def test_odometry_of_another_frame_than_the_clouds_is_said_once():

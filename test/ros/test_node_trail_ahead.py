@@ -4,15 +4,12 @@ reaches in time, and one still waiting at shutdown is stored and saved."""
 
 from __future__ import annotations
 
-import signal
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
 from sensor_msgs.msg import PointCloud2  # noqa: E402
 
 from vbrl_ros.detection.database import KeyframeDatabase  # noqa: E402
@@ -20,9 +17,8 @@ from vbrl_ros.model.builtin import load_default_model  # noqa: E402
 from vbrl_ros.model.model_file import load_model  # noqa: E402
 from vbrl_ros.ros.message_conversion import to_ros_msg  # noqa: E402
 from vbrl_ros.ros.settings import NodeSettings  # noqa: E402
-from vbrl_ros.ros.testing import MessageCollector, isolated_ros_env, ros_context  # noqa: E402
 
-from .test_node_poses import odometry, run_node, values  # noqa: E402
+from .test_node_poses import odometry, odometry_session, values  # noqa: E402
 
 SPACING_M = 1.5  # odometry between keyframes: three lie within the model's 3 m
 
@@ -48,43 +44,30 @@ def stored_stamps(database, model_path) -> list[float]:
 
 def test_keyframes_wait_for_the_metres_after_them_go_after_a_silence_and_are_saved_at_shutdown(tmp_path):
     database, model = tmp_path / "keyframes.npz", model_with_trail_ahead(tmp_path / "model.npz")
-    with ros_context() as context:
-        env = isolated_ros_env(context.get_domain_id())
-        probe = rclpy.create_node("probe", context=context)
-        collector = MessageCollector(probe, {"/diagnostics": DiagnosticArray})
-        clouds = probe.create_publisher(PointCloud2, "/points", 10)
-        odom = probe.create_publisher(Odometry, "/odom", 50)
-        # a silence of half exclude_recent_s (2 s) lets the waiting keyframes go
-        node = run_node(env, f"database_path:={database}", "save_every:=0", f"model_path:={model}",
-                        "exclude_recent_s:=4.0")
-        stamps = [10.0, 10.5, 11.0, 20.0]  # within 2 s: none too late to join the first
-        try:
-            assert collector.wait_for({"/diagnostics": 1}, timeout=30), "node did not come up"
-            assert collector.spin_until(lambda: odom.get_subscription_count() > 0
-                                        and clouds.get_subscription_count() > 0, 20)
+    stamps = [10.0, 10.5, 11.0, 20.0]  # within 2 s: none too late to join the first
+    # a silence of half exclude_recent_s (2 s) lets the waiting keyframes go
+    with odometry_session(f"database_path:={database}", "save_every:=0", f"model_path:={model}",
+                          "exclude_recent_s:=4.0") as session:
+        collector = session.collector
 
-            def keyframe(k: int) -> None:
-                odom.publish(odometry(stamps[k] - 0.1, SPACING_M * k))
-                odom.publish(odometry(stamps[k] + 0.1, SPACING_M * k))
-                # the node decides by the odometry it has when the cloud comes
-                assert collector.spin_until(lambda: values(collector)["odometry_received"] >= 2 * (k + 1), 30)
-                clouds.publish(cloud(stamps[k]))
-                assert collector.spin_until(lambda: values(collector)["keyframes_waiting"]
-                                            + values(collector)["keyframes_processed"] >= k + 1, 30), \
-                    values(collector)
+        def keyframe(k: int) -> None:
+            session.odom.publish(odometry(stamps[k] - 0.1, SPACING_M * k))
+            session.odom.publish(odometry(stamps[k] + 0.1, SPACING_M * k))
+            # the node decides by the odometry it has when the cloud comes
+            assert collector.spin_until(lambda: values(collector)["odometry_received"] >= 2 * (k + 1), 30)
+            session.clouds.publish(cloud(stamps[k]))
+            assert collector.spin_until(lambda: values(collector)["keyframes_waiting"]
+                                        + values(collector)["keyframes_processed"] >= k + 1, 30), \
+                values(collector)
 
-            for k in range(3):  # 3 m along: none is passed yet
-                keyframe(k)
-            seen = values(collector)
-            assert (seen["keyframes_waiting"], seen["keyframes_processed"]) == (3, 0), seen
-            assert collector.spin_until(lambda: values(collector)["keyframes_processed"] == 3
-                                        and values(collector)["keyframes_waiting"] == 0, 30), values(collector)
-            keyframe(3)  # waits again: stored when the node stops
-            seen = values(collector)
-            assert (seen["keyframes_waiting"], seen["keyframes_processed"]) == (1, 3), seen
-        finally:
-            node.send_signal(signal.SIGTERM)
-            output, _ = node.communicate(timeout=60)
-        probe.destroy_node()
-    assert node.returncode == 0, output
+        for k in range(3):  # 3 m along: none is passed yet
+            keyframe(k)
+        seen = values(collector)
+        assert (seen["keyframes_waiting"], seen["keyframes_processed"]) == (3, 0), seen
+        assert collector.spin_until(lambda: values(collector)["keyframes_processed"] == 3
+                                    and values(collector)["keyframes_waiting"] == 0, 30), values(collector)
+        keyframe(3)  # waits again: stored when the node stops
+        seen = values(collector)
+        assert (seen["keyframes_waiting"], seen["keyframes_processed"]) == (1, 3), seen
+    assert session.returncode == 0, session.output
     assert stored_stamps(database, model) == stamps
