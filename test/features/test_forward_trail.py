@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from vbrl_ros.features.blind_wedges import empty_bins, sees_around
-from vbrl_ros.features.forward_trail import MAX_POINTS, RANGE_M, STEP_M, ForwardTrail
+from vbrl_ros.features.forward_trail import MAX_POINTS, RANGE_M, STEP_M, VOXEL_M, ForwardTrail, thinned
 from vbrl_ros.features.session_trails import with_trail
 from vbrl_ros.features.trail import TRAIL_POINTS, Trail
 
@@ -93,6 +93,48 @@ def test_merged_points_stay_within_range_of_the_keyframe_and_the_budget():
     assert earlier[:, 0].min() < -RANGE_M + 5.0  # reaching back almost as far as the grid does
 
 
+def test_the_keyframe_comes_first_then_the_earlier_ones_nearest_first_until_the_budget():
+    """Each earlier keyframe's points are where odometry puts them, one keyframe after another,
+    nearest first; the last one that tops the budget up gives every k-th of its points."""
+    rng = np.random.default_rng(5)
+    cloud = np.column_stack([rng.uniform(-30, 30, 40_000), rng.uniform(-30, 30, 40_000),
+                             rng.uniform(0, 5, 40_000)]).astype(np.float32)
+    kept = thinned(cloud)
+    trail = ForwardTrail(60.0)
+    xs = np.arange(0.0, 5 * STEP_M, STEP_M)
+    for x in xs:
+        trail.add(cloud, pose_at(x), float(x))
+    here = pose_at(10.0, 0.0, 90.0)
+    own = cloud[:100]
+    merged = trail.merged(own, here, 10.0, own=own)
+    assert merged.keyframes == len(xs) and np.array_equal(merged.points[:100], own)
+    first = [np.flatnonzero(merged.keyframe_of == k)[0] for k in range(len(xs) + 1)]
+    assert first == sorted(first)  # each keyframe's points together, in order
+    total = 0
+    for k, x in enumerate(xs[::-1], start=1):  # nearest (the last added) first
+        world = in_world(merged.points[merged.keyframe_of == k], here)
+        expected = in_world(kept, pose_at(x))
+        expected = expected[np.hypot(*(expected[:, :2] - here[:2, 3]).T) <= RANGE_M]
+        if k < len(xs):
+            np.testing.assert_allclose(world, expected, atol=1e-3)
+        else:  # the budget's last keyframe: every step-th point
+            room = MAX_POINTS - total
+            assert 0 < room < len(expected)
+            np.testing.assert_allclose(world, expected[::-(-len(expected) // room)], atol=1e-3)
+        total += len(world)
+    assert total == len(merged.points) - len(own) <= MAX_POINTS
+
+
+def test_thinning_keeps_the_first_point_of_each_voxel_in_scan_order():
+    rng = np.random.default_rng(6)
+    for scale in (3.0, 30.0, 3e4):  # dense, sparse, and far from the origin
+        xyz = rng.normal(0.0, scale, (20_000, 3)).astype(np.float32)
+        cell = np.floor(xyz / VOXEL_M).astype(np.int64)
+        _, first = np.unique(cell, axis=0, return_index=True)
+        np.testing.assert_array_equal(thinned(xyz), xyz[np.sort(first)])
+    assert thinned(np.zeros((0, 3), np.float32)).shape == (0, 3)
+
+
 def test_earlier_keyframes_that_did_not_see_the_place_are_left_out():
     """Around a corner: the keyframes down the first street looked past where the sensor now
     stands, those of the second street at it."""
@@ -107,9 +149,10 @@ def test_earlier_keyframes_that_did_not_see_the_place_are_left_out():
         trail.add(seen_ahead(world, pose), pose, travelled)
     here = pose_at(0.0, 30.0, 90.0)
     assert len(trail) == len(corner) + len(turned)  # all within reach
-    parts = trail.merged(seen_ahead(world, here), here, travelled + 20.0)
+    merged = trail.merged(seen_ahead(world, here), here, travelled + 20.0)
     # 30 m up the side street lies 45° or more off the first street's axis from every keyframe on it
-    assert len(parts) == len(turned)
+    assert merged.keyframes == len(turned)
+    assert set(np.unique(merged.keyframe_of)) <= set(range(1, len(turned) + 1))
 
 
 def test_a_keyframe_behind_a_wall_is_not_seen():
@@ -120,7 +163,7 @@ def test_a_keyframe_behind_a_wall_is_not_seen():
         wall = np.column_stack([np.full(y.size, wall_x), y.ravel(), z.ravel()]).astype(np.float32)
         trail.add(wall, pose_at(0.0), 0.0)
         here = pose_at(10.0)
-        assert len(trail.merged(np.zeros((0, 3), np.float32), here, 10.0)) == int(seen)
+        assert trail.merged(np.zeros((0, 3), np.float32), here, 10.0).keyframes == int(seen)
 
 
 def test_one_keyframe_is_kept_per_step_and_those_beyond_reach_are_forgotten():

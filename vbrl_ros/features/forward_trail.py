@@ -21,9 +21,10 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
+from numba import njit
 
 from vbrl_ros.features.blind_wedges import BINS, azimuth_bins
 
@@ -45,6 +46,15 @@ RANGE_M = 40.0
 MAX_POINTS = 150_000
 
 
+class Merged(NamedTuple):
+    """Points merged into a keyframe's frame: ``keyframe_of`` each point's keyframe (0 its own,
+    1 the nearest earlier one merged, 2 the next...), each keyframe's points together."""
+
+    points: np.ndarray  # (n, 3) float32
+    keyframe_of: np.ndarray  # (n,) int64
+    keyframes: int  # how many earlier keyframes were merged
+
+
 @dataclass(frozen=True)
 class _Looked:
     points: np.ndarray  # (n, 3) float32 in its own sensor frame, voxel-thinned
@@ -61,37 +71,52 @@ class ForwardTrail:
         self.reach_m = float(reach_m)
         self.max_age = float(max_age)
         self._kept: deque[_Looked] = deque()
+        self._stacked: tuple[np.ndarray, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return len(self._kept)
 
     def clear(self) -> None:
         self._kept.clear()
+        self._stacked = None
 
-    def merged(self, xyz: np.ndarray, pose: np.ndarray, travelled: float,
-               stamp: float = math.nan) -> list[np.ndarray]:
-        """The earlier keyframes' points that describe ``xyz``'s place, in its frame: one array per
-        earlier keyframe that saw its position, nearest first (empty: none did). Those ``max_age``
-        or more before ``stamp`` are forgotten (NaN: no limit)."""
+    def merged(self, xyz: np.ndarray, pose: np.ndarray, travelled: float, stamp: float = math.nan,
+               own: np.ndarray | None = None) -> Merged:
+        """The earlier keyframes' points that describe ``xyz``'s place, in its frame, nearest
+        keyframe first, after ``own`` (keyframe 0) when given. Those ``max_age`` or more before
+        ``stamp`` are forgotten (NaN: no limit)."""
+        kept = len(self._kept)
         self._kept = deque(k for k in self._kept
                            if within_reach(k, travelled, pose, stamp, self.reach_m, self.max_age))
+        if len(self._kept) != kept:
+            self._stacked = None
+        own = np.zeros((0, 3), np.float32) if own is None else np.ascontiguousarray(own, np.float32)
         to_keyframe = np.linalg.inv(pose)
-        parts: list[np.ndarray] = []
-        total = 0
-        for kept in reversed(self._kept):  # nearest first
-            if total >= MAX_POINTS:
-                break
-            T = to_keyframe @ kept.pose
-            if not saw(kept, np.linalg.inv(T)[:3, 3]):
-                continue
-            points = kept.points @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)
-            points = points[np.einsum("ij,ij->i", points[:, :2], points[:, :2]) <= RANGE_M ** 2]
-            room = MAX_POINTS - total
-            if len(points) > room:  # the last one tops the budget up with every k-th point
-                points = points[::-(-len(points) // room)]
-            parts.append(points)
-            total += len(points)
-        return parts
+        chosen = []  # (index into kept, its transform into the keyframe's frame), nearest first
+        for i in range(len(self._kept) - 1, -1, -1):
+            earlier = self._kept[i].pose
+            # the keyframe's position in the earlier one's frame, without inverting a 4x4 per keyframe
+            if saw(self._kept[i], earlier[:3, :3].T @ (pose[:3, 3] - earlier[:3, 3])):
+                chosen.append((i, to_keyframe @ earlier))
+        if not chosen:
+            return Merged(own, np.zeros(len(own), np.int64), 0)
+        points, starts = self._stacked_points()
+        index = np.array([i for i, _ in chosen], np.int64)
+        transforms = np.array([T for _, T in chosen], np.float32)
+        merged, keyframe_of = _placed(own, points, starts[index], starts[index + 1], transforms,
+                                      np.float32(RANGE_M ** 2), MAX_POINTS)
+        return Merged(merged, keyframe_of, len(chosen))
+
+    def _stacked_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every kept keyframe's points in one array (each in its own frame) and where each
+        starts (one more: the end); stacked again only when the kept ones change."""
+        if self._stacked is None:
+            counts = [len(k.points) for k in self._kept]
+            starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+            points = (np.concatenate([k.points for k in self._kept]) if self._kept
+                      else np.zeros((0, 3), np.float32))
+            self._stacked = (np.ascontiguousarray(points, np.float32), starts)
+        return self._stacked
 
     def add(self, xyz: np.ndarray, pose: np.ndarray, travelled: float, stamp: float = math.nan) -> None:
         """Keep ``xyz`` (its own frame) for the keyframes after it, one per ``STEP_M`` of travel."""
@@ -101,6 +126,7 @@ class ForwardTrail:
         if len(xyz):
             np.maximum.at(reach, azimuth_bins(xyz[:, :2]), np.hypot(xyz[:, 0], xyz[:, 1]))
         self._kept.append(_Looked(thinned(xyz), pose, travelled, stamp, reach))
+        self._stacked = None
 
 
 def within_reach(earlier: Any, travelled: float, pose: np.ndarray, stamp: float,
@@ -120,7 +146,8 @@ def saw(kept: _Looked, position: np.ndarray) -> bool:
     distance = float(np.hypot(position[0], position[1]))
     if distance < NEAR_M:
         return True
-    b = int(azimuth_bins(position[None, :2])[0])
+    # azimuth_bins of one point, without the array round trip (thirty calls a keyframe)
+    b = math.floor((math.atan2(position[1], position[0]) + math.pi) * (BINS / (2.0 * math.pi))) % BINS
     farthest = max(kept.reach[(b - 1) % BINS], kept.reach[b], kept.reach[(b + 1) % BINS])
     return bool(farthest >= distance - VISIBLE_SLACK_M)
 
@@ -129,8 +156,71 @@ def thinned(xyz: np.ndarray) -> np.ndarray:
     """One point of ``xyz`` per ``VOXEL_M`` voxel, the first in scan order."""
     if not len(xyz):
         return xyz
-    # one int64 key per voxel (21 bits an axis, +-500 km): a 1-D unique is ~10x a row-wise one
+    # one int64 key per voxel (21 bits an axis, +-500 km)
     cell = np.clip(np.floor(xyz / VOXEL_M).astype(np.int64) + (1 << 20), 0, (1 << 21) - 1)
     key = (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
-    _, first = np.unique(key, return_index=True)
-    return xyz[np.sort(first)]
+    return np.compress(_first_of_each(key), xyz, axis=0)
+
+
+@njit(cache=True, nogil=True)
+def _first_of_each(keys):
+    """(n,) bool: the first of each distinct key, by an open-addressing hash set (a sort-based
+    unique took a millisecond of each kept keyframe)."""
+    size = 1
+    while size < 2 * keys.shape[0]:
+        size *= 2
+    table = np.full(size, -1, np.int64)  # keys are >= 0
+    first = np.zeros(keys.shape[0], np.bool_)
+    for i in range(keys.shape[0]):
+        k = keys[i]
+        slot = ((k * 0x5851F42D4C957F2D) >> 29) & (size - 1)  # multiplicative hashing, int64 wraps
+        while table[slot] != -1 and table[slot] != k:
+            slot = (slot + 1) & (size - 1)
+        if table[slot] == -1:
+            table[slot] = k
+            first[i] = True
+    return first
+
+
+@njit(cache=True, nogil=True)
+def _placed(own, points, starts, ends, transforms, range_sq, max_points):
+    """``own`` then, for each chosen keyframe (its rows ``starts[k]:ends[k]`` of ``points``), its
+    points moved by ``transforms[k]`` within the horizontal range, until ``max_points`` earlier
+    points: the last keyframe tops the budget up with every j-th of its points. One pass with no
+    per-keyframe arrays: merging thirty earlier clouds was a third of a forward-looking keyframe's
+    describe time."""
+    n_own = own.shape[0]
+    total = 0
+    for k in range(starts.shape[0]):
+        total += ends[k] - starts[k]
+    out = np.empty((n_own + total, 3), np.float32)
+    keyframe_of = np.empty(n_own + total, np.int64)
+    out[:n_own] = own
+    keyframe_of[:n_own] = 0
+    at = n_own
+    for k in range(starts.shape[0]):
+        if at - n_own >= max_points:
+            break
+        T = transforms[k]
+        first = at
+        for i in range(starts[k], ends[k]):
+            x, y, z = points[i, 0], points[i, 1], points[i, 2]
+            px = x * T[0, 0] + y * T[0, 1] + z * T[0, 2] + T[0, 3]
+            py = x * T[1, 0] + y * T[1, 1] + z * T[1, 2] + T[1, 3]
+            if px * px + py * py > range_sq:
+                continue
+            out[at, 0] = px
+            out[at, 1] = py
+            out[at, 2] = x * T[2, 0] + y * T[2, 1] + z * T[2, 2] + T[2, 3]
+            keyframe_of[at] = k + 1
+            at += 1
+        room = max_points - (first - n_own)
+        count = at - first
+        if count > room:  # every step-th point, in place (it reads ahead of where it writes)
+            step = -(-count // room)
+            kept = 0
+            for j in range(first, at, step):
+                out[first + kept] = out[j]
+                kept += 1
+            at = first + kept
+    return out[:at], keyframe_of[:at]
