@@ -1,8 +1,11 @@
 import argparse
 import json
+import os
 import re
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -116,3 +119,60 @@ def test_bench_sizes_are_checked(capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["bench", "--sizes", "1000,abc"])
     assert "comma-separated integers" in capsys.readouterr().err
+
+
+TERMINATED_SCRIPT = """
+import argparse, itertools, sys, time
+from vbrl_ros.features.parallel import bounded_map, worker_pool
+from vbrl_ros.tools.cli import run_parsed
+
+def endless_work(args):
+    with worker_pool(2, time.time, ()) as pool:
+        for k, _ in enumerate(bounded_map(pool, time.sleep, itertools.repeat(0.05), 8)):
+            if k == 4:
+                print("working", flush=True)
+    return 0
+
+if __name__ == "__main__":
+    sys.exit(run_parsed(argparse.Namespace(func=endless_work, command="test")))
+"""
+
+
+def _descendants(pid: int) -> set[int]:
+    """Every living process below ``pid`` (read from /proc)."""
+    parents = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as stat:
+                    parents[int(entry)] = int(stat.read().rsplit(")", 1)[1].split()[1])
+            except OSError:  # ended meanwhile
+                pass
+    found, frontier = set(), {pid}
+    while frontier:
+        frontier = {child for child, parent in parents.items() if parent in frontier} - found
+        found |= frontier
+    return found
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads the process tree from /proc")
+def test_sigterm_shuts_a_commands_worker_processes_down(tmp_path):
+    """Killed with SIGTERM mid-run, a command exits 143 after its worker pool has stopped its
+    processes: none is left behind (before, the fork server and its workers kept running)."""
+    script = tmp_path / "endless.py"
+    script.write_text(TERMINATED_SCRIPT)
+    process = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True)
+    try:
+        assert process.stdout.readline().strip() == "working"
+        helpers = _descendants(process.pid)
+        assert len(helpers) >= 3  # the fork server and two workers (and a resource tracker)
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=30) == 143
+        assert "terminated" in process.stderr.read()
+    finally:
+        process.kill()
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline and any(os.path.exists(f"/proc/{pid}") for pid in helpers):
+        time.sleep(0.1)
+    assert not [pid for pid in helpers if os.path.exists(f"/proc/{pid}")]
