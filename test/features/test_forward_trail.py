@@ -106,7 +106,7 @@ def test_the_keyframe_comes_first_then_the_earlier_ones_nearest_first_until_the_
         trail.add(cloud, pose_at(x), float(x))
     here = pose_at(10.0, 0.0, 90.0)
     own = cloud[:100]
-    merged = trail.merged(own, here, 10.0, own=own)
+    merged = trail.merged(here, 10.0, own=own)
     assert merged.keyframes == len(xs) and np.array_equal(merged.points[:100], own)
     first = [np.flatnonzero(merged.keyframe_of == k)[0] for k in range(len(xs) + 1)]
     assert first == sorted(first)  # each keyframe's points together, in order
@@ -149,7 +149,7 @@ def test_earlier_keyframes_that_did_not_see_the_place_are_left_out():
         trail.add(seen_ahead(world, pose), pose, travelled)
     here = pose_at(0.0, 30.0, 90.0)
     assert len(trail) == len(corner) + len(turned)  # all within reach
-    merged = trail.merged(seen_ahead(world, here), here, travelled + 20.0)
+    merged = trail.merged(here, travelled + 20.0)
     # 30 m up the side street lies 45° or more off the first street's axis from every keyframe on it
     assert merged.keyframes == len(turned)
     assert set(np.unique(merged.keyframe_of)) <= set(range(1, len(turned) + 1))
@@ -163,7 +163,7 @@ def test_a_keyframe_behind_a_wall_is_not_seen():
         wall = np.column_stack([np.full(y.size, wall_x), y.ravel(), z.ravel()]).astype(np.float32)
         trail.add(wall, pose_at(0.0), 0.0)
         here = pose_at(10.0)
-        assert trail.merged(np.zeros((0, 3), np.float32), here, 10.0).keyframes == int(seen)
+        assert trail.merged(here, 10.0).keyframes == int(seen)
 
 
 def test_one_keyframe_is_kept_per_step_and_those_beyond_reach_are_forgotten():
@@ -172,7 +172,7 @@ def test_one_keyframe_is_kept_per_step_and_those_beyond_reach_are_forgotten():
     for x in np.arange(0.0, 12.5, 0.5):
         trail.add(scan, pose_at(x), float(x))
     assert len(trail) == int(12.0 // STEP_M) + 1
-    trail.merged(scan, pose_at(12.5), 12.5)
+    trail.merged(pose_at(12.5), 12.5)
     assert len(trail) == 5  # those kept at 4, 6, .. 12 m: within 10 m of travel
 
 

@@ -17,6 +17,8 @@ mirror would hide what it saw.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 BIN_DEG = 5.0  # azimuth histogram resolution
@@ -31,6 +33,11 @@ def azimuth_bins(xy: np.ndarray, count: int = BINS) -> np.ndarray:
     """(n,) int64: the azimuth bin of each (x, y), of ``count`` round the circle from -180°."""
     azimuth = np.arctan2(xy[:, 1], xy[:, 0])
     return (np.floor((azimuth + np.pi) * (count / (2.0 * np.pi))).astype(np.int64)) % count
+
+
+def azimuth_bin(x: float, y: float, count: int = BINS) -> int:
+    """:func:`azimuth_bins` of one point, without the array round trip (a hot loop's)."""
+    return math.floor((math.atan2(y, x) + math.pi) * (count / (2.0 * math.pi))) % count
 
 
 def empty_bins(xy: np.ndarray, bins: np.ndarray | None = None) -> np.ndarray:

@@ -26,7 +26,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit
 
-from vbrl_ros.features.blind_wedges import BINS, azimuth_bins
+from vbrl_ros.features.blind_wedges import BINS, azimuth_bin, azimuth_bins
 
 #: One earlier keyframe is kept per this much travel.
 STEP_M = 2.0
@@ -80,11 +80,11 @@ class ForwardTrail:
         self._kept.clear()
         self._stacked = None
 
-    def merged(self, xyz: np.ndarray, pose: np.ndarray, travelled: float, stamp: float = math.nan,
+    def merged(self, pose: np.ndarray, travelled: float, stamp: float = math.nan,
                own: np.ndarray | None = None) -> Merged:
-        """The earlier keyframes' points that describe ``xyz``'s place, in its frame, nearest
-        keyframe first, after ``own`` (keyframe 0) when given. Those ``max_age`` or more before
-        ``stamp`` are forgotten (NaN: no limit)."""
+        """The earlier keyframes' points that describe the place of a keyframe at ``pose``, in its
+        frame, nearest keyframe first, after its points ``own`` (keyframe 0) when given. Those
+        ``max_age`` or more before ``stamp`` are forgotten (NaN: no limit)."""
         kept = len(self._kept)
         self._kept = deque(k for k in self._kept
                            if within_reach(k, travelled, pose, stamp, self.reach_m, self.max_age))
@@ -146,8 +146,7 @@ def saw(kept: _Looked, position: np.ndarray) -> bool:
     distance = float(np.hypot(position[0], position[1]))
     if distance < NEAR_M:
         return True
-    # azimuth_bins of one point, without the array round trip (thirty calls a keyframe)
-    b = math.floor((math.atan2(position[1], position[0]) + math.pi) * (BINS / (2.0 * math.pi))) % BINS
+    b = azimuth_bin(position[0], position[1])  # thirty calls a keyframe
     farthest = max(kept.reach[(b - 1) % BINS], kept.reach[b], kept.reach[(b + 1) % BINS])
     return bool(farthest >= distance - VISIBLE_SLACK_M)
 

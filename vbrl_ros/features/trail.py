@@ -174,17 +174,16 @@ class Trail:
         """The keyframe (``parts[0]``) with its near trail and, in its ``blind`` bins, what its
         forward trail saw there; None when it saw nothing there. A run still empty (an open lot,
         a street with no end in range) is hidden with its mirror image when described, as any is."""
-        forward = self._forward.merged(parts[0], pose, self._travelled, stamp)
+        forward = self._forward.merged(pose, self._travelled, stamp)
         keep = filling(forward.points, blind, parts[0])
         if not keep.any():
             return None
         points = np.concatenate([*parts, forward.points[keep]])
-        keyframe_of = np.concatenate([np.repeat(np.arange(len(parts)), [len(p) for p in parts]),
-                                      forward.keyframe_of[keep] + (len(parts) - 1)])
+        keyframe_of = np.concatenate([keyframe_of_parts(parts), forward.keyframe_of[keep] + (len(parts) - 1)])
         return confirmed_cloud(points, keyframe_of)
 
     def _forward_merged(self, xyz: np.ndarray, pose: np.ndarray, stamp: float) -> np.ndarray | None:
-        merged = self._forward.merged(xyz, pose, self._travelled, stamp, own=xyz)
+        merged = self._forward.merged(pose, self._travelled, stamp, own=xyz)
         return None if not merged.keyframes else confirmed_cloud(merged.points, merged.keyframe_of)
 
     def _forget_beyond_reach(self, pose: np.ndarray, stamp: float) -> None:
@@ -242,8 +241,12 @@ def merged_confirmed(parts: list[np.ndarray], hidden: np.ndarray | None = None) 
     """The keyframe's points (``parts[0]``) with its trail's (the rest), each earlier point near
     the sensor only where another keyframe confirms it (:func:`confirmed`), and none in the
     azimuth bins ``hidden`` (the keyframe's blind wedges and their mirror images)."""
-    return confirmed_cloud(np.concatenate(parts), np.repeat(np.arange(len(parts)), [len(p) for p in parts]),
-                           hidden)
+    return confirmed_cloud(np.concatenate(parts), keyframe_of_parts(parts), hidden)
+
+
+def keyframe_of_parts(parts: list[np.ndarray]) -> np.ndarray:
+    """(n,) int64: the part each point of ``parts``, concatenated, came from."""
+    return np.repeat(np.arange(len(parts)), [len(p) for p in parts])
 
 
 def confirmed_cloud(merged: np.ndarray, keyframe_of: np.ndarray, hidden: np.ndarray | None = None) -> np.ndarray:
